@@ -1,0 +1,571 @@
+"""Simplicial meshes: the shared geometry of the solver, the scenes and the graph hierarchy.
+
+A :class:`Mesh` is ``nodes (N, d)`` float64 and ``cells (C, d+1)`` int64 simplices with
+d in {1, 2, 3} (segments, triangles, tetrahedra). It is validated on construction and
+immutable afterwards; everything derived from it (adjacency, edges, boundary, components)
+is computed on first use and cached.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse import csgraph
+
+__all__ = ["Mesh", "MeshError", "EdgeLengthStats", "ExtendedMesh", "with_extra_layer"]
+
+SIMPLEX_TYPES = {1: "line", 2: "triangle", 3: "tetra"}
+_MESHIO_DIM = {"line": 1, "triangle": 2, "tetra": 3}
+# Non-simplex meshio cell types a user may reasonably hand us, with their dimension.
+_NON_SIMPLEX_DIM = {
+    "quad": 2, "polygon": 2, "hexahedron": 3, "wedge": 3, "pyramid": 3,
+    "line3": 1, "triangle6": 2, "quad8": 2, "quad9": 2, "tetra10": 3, "hexahedron20": 3,
+}
+_DEGENERATE_RTOL = 1e-12
+_NAMED = 5  # how many offending cells/nodes an error message lists
+
+
+class MeshError(ValueError):
+    """A mesh (arrays or file) that cannot be used; the message names the problem."""
+
+
+def _first(indices: np.ndarray, what: str) -> str:
+    """'cells [3, 8, 9]' or 'cells [3, 8, 9, 10, 11] and 40 more'."""
+    indices = np.asarray(indices).ravel()
+    shown = ", ".join(str(int(i)) for i in indices[:_NAMED])
+    more = indices.size - _NAMED
+    return f"{what} [{shown}]" + (f" and {more} more" if more > 0 else "")
+
+
+def signed_measures(nodes: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Signed length/area/volume of each simplex: ``det([x1-x0, ..., xd-x0]) / d!``.
+
+    nodes: (N, d), cells: (C, d+1) -> (C,). Positive for the reference orientation.
+    """
+    d = nodes.shape[1]
+    corner = nodes[cells[:, 0]]
+    spans = nodes[cells[:, 1:]] - corner[:, None, :]  # (C, d, d), rows are edge vectors
+    return np.linalg.det(spans) / math.factorial(d)
+
+
+def _cell_max_edge(nodes: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Longest edge of each simplex, (C,)."""
+    k = cells.shape[1]
+    longest = np.zeros(len(cells))
+    for a in range(k):
+        for b in range(a + 1, k):
+            longest = np.maximum(longest, np.linalg.norm(nodes[cells[:, a]] - nodes[cells[:, b]], axis=1))
+    return longest
+
+
+def _as_nodes(nodes) -> np.ndarray:
+    try:
+        arr = np.array(nodes, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MeshError(f"mesh nodes must be a numeric (N, d) array: {exc}") from None
+    if arr.ndim != 2 or arr.shape[1] not in (1, 2, 3) or arr.shape[0] == 0:
+        raise MeshError(
+            f"mesh nodes must have shape (N, d) with N >= 1 and d in 1, 2, 3; got shape {arr.shape}"
+        )
+    bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+    if bad.size:
+        raise MeshError(f"non-finite coordinates (NaN or inf) at {_first(bad, 'nodes')}")
+    return arr
+
+
+def _as_cells(cells, n_nodes: int, dim: int) -> np.ndarray:
+    arr = np.asarray(cells)
+    if arr.dtype == bool or not (np.issubdtype(arr.dtype, np.integer) or arr.size == 0):
+        raise MeshError(f"mesh cells must be an integer array of node indices; got dtype {arr.dtype}")
+    if arr.ndim != 2 or arr.shape[0] == 0:
+        raise MeshError(f"mesh cells must have shape (C, d+1) with C >= 1; got shape {arr.shape}")
+    if arr.shape[1] != dim + 1:
+        raise MeshError(
+            f"wrong cell arity: cells have {arr.shape[1]} nodes each, but nodes have {dim} "
+            f"coordinates, so each cell must be a {SIMPLEX_TYPES[dim]} with {dim + 1} nodes"
+        )
+    arr = arr.astype(np.int64)
+    bad = np.flatnonzero(((arr < 0) | (arr >= n_nodes)).any(axis=1))
+    if bad.size:
+        raise MeshError(f"node indices out of range [0, {n_nodes}) in {_first(bad, 'cells')}")
+    return arr
+
+
+@dataclass(frozen=True)
+class EdgeLengthStats:
+    """Statistics of the unique mesh edge lengths."""
+
+    min: float
+    mean: float
+    max: float
+    std: float
+
+
+class Mesh:
+    """A validated simplicial mesh.
+
+    Args:
+        nodes: (N, d) coordinates, d in {1, 2, 3}; stored as read-only float64.
+        cells: (C, d+1) node indices of positively oriented simplices; stored as int64.
+
+    Raises:
+        MeshError: naming the problem and the first offending cells or nodes, for wrong
+            shapes or arity, non-finite coordinates, indices out of range, nodes used by no
+            cell, and inverted (negative measure) or degenerate (zero measure) cells.
+    """
+
+    def __init__(self, nodes, cells):
+        nodes = _as_nodes(nodes)
+        cells = _as_cells(cells, len(nodes), nodes.shape[1])
+        used = np.zeros(len(nodes), dtype=bool)
+        used[cells.ravel()] = True
+        if not used.all():
+            raise MeshError(
+                f"{_first(np.flatnonzero(~used), 'nodes')} are used by no cell; remove them "
+                "(Mesh.from_arrays(..., drop_unused=True) does)"
+            )
+        measures = signed_measures(nodes, cells)
+        tol = _DEGENERATE_RTOL * _cell_max_edge(nodes, cells) ** nodes.shape[1]
+        degenerate = np.flatnonzero(np.abs(measures) <= tol)
+        if degenerate.size:
+            raise MeshError(
+                f"degenerate cells (zero {self._measure_word(nodes.shape[1])}): {_first(degenerate, 'cells')}"
+            )
+        inverted = np.flatnonzero(measures < 0)
+        if inverted.size:
+            raise MeshError(
+                f"inverted cells (negative signed {self._measure_word(nodes.shape[1])}): "
+                f"{_first(inverted, 'cells')}, {inverted.size} of {len(cells)} cells; "
+                "if the mesh is valid but its cells are ordered inconsistently, build it with "
+                "Mesh.from_arrays(..., orient=True) or Mesh.read(path, orient=True)"
+            )
+        nodes.setflags(write=False)
+        cells.setflags(write=False)
+        measures.setflags(write=False)
+        self._nodes, self._cells, self._measures = nodes, cells, measures
+
+    @staticmethod
+    def _measure_word(dim: int) -> str:
+        return {1: "length", 2: "area", 3: "volume"}[dim]
+
+    @classmethod
+    def from_arrays(cls, nodes, cells, *, drop_unused: bool = False, orient: bool = False) -> Mesh:
+        """Build a mesh from raw arrays, optionally repairing what a generator leaves behind.
+
+        drop_unused: remove nodes that no cell uses (renumbering the rest in order).
+        orient: reorder the nodes of every negatively oriented cell. Only for meshes known to
+            be untangled (from a mesher); it would hide genuinely inverted cells.
+        """
+        nodes = _as_nodes(nodes)
+        cells = _as_cells(cells, len(nodes), nodes.shape[1])
+        if drop_unused:
+            used = np.unique(cells)
+            renumber = np.full(len(nodes), -1, dtype=np.int64)
+            renumber[used] = np.arange(used.size)
+            nodes, cells = nodes[used], renumber[cells]
+        if orient:
+            cells = cells.copy()
+            flip = signed_measures(nodes, cells) < 0
+            cells[flip, -2:] = cells[flip][:, [-1, -2]]
+        return cls(nodes, cells)
+
+    # ----------------------------------------------------------------- basic data
+    @property
+    def nodes(self) -> np.ndarray:
+        """(N, d) float64 node coordinates (read-only)."""
+        return self._nodes
+
+    @property
+    def cells(self) -> np.ndarray:
+        """(C, d+1) int64 node indices, positively oriented (read-only)."""
+        return self._cells
+
+    @property
+    def dim(self) -> int:
+        return self._nodes.shape[1]
+
+    @property
+    def n_nodes(self) -> int:
+        return self._nodes.shape[0]
+
+    @property
+    def n_cells(self) -> int:
+        return self._cells.shape[0]
+
+    @property
+    def cell_measures(self) -> np.ndarray:
+        """(C,) positive lengths / areas / volumes."""
+        return self._measures
+
+    @property
+    def cell_type(self) -> str:
+        """meshio name of the cells: 'line', 'triangle' or 'tetra'."""
+        return SIMPLEX_TYPES[self.dim]
+
+    def __repr__(self) -> str:
+        return f"Mesh(dim={self.dim}, n_nodes={self.n_nodes}, n_cells={self.n_cells})"
+
+    @cached_property
+    def topology_hash(self) -> str:
+        """sha256 of (node count, cells): equal for meshes with the same connectivity."""
+        digest = hashlib.sha256()
+        digest.update(np.int64(self.n_nodes).tobytes())
+        digest.update(np.ascontiguousarray(self._cells).tobytes())
+        return digest.hexdigest()
+
+    # ----------------------------------------------------------------- edges and adjacency
+    @cached_property
+    def edges(self) -> np.ndarray:
+        """(E, 2) int64 unique undirected edges, ``i < j``, sorted lexicographically."""
+        k = self.dim + 1
+        pairs = np.concatenate(
+            [self._cells[:, [a, b]] for a in range(k) for b in range(a + 1, k)], axis=0
+        )
+        pairs.sort(axis=1)
+        keys = np.unique(pairs[:, 0] * self.n_nodes + pairs[:, 1])
+        edges = np.stack([keys // self.n_nodes, keys % self.n_nodes], axis=1)
+        edges.setflags(write=False)
+        return edges
+
+    @cached_property
+    def edge_lengths(self) -> np.ndarray:
+        """(E,) length of each edge in :attr:`edges`."""
+        lengths = np.linalg.norm(self._nodes[self.edges[:, 1]] - self._nodes[self.edges[:, 0]], axis=1)
+        lengths.setflags(write=False)
+        return lengths
+
+    @cached_property
+    def edge_length_stats(self) -> EdgeLengthStats:
+        lengths = self.edge_lengths
+        return EdgeLengthStats(
+            min=float(lengths.min()), mean=float(lengths.mean()),
+            max=float(lengths.max()), std=float(lengths.std()),
+        )
+
+    @cached_property
+    def _adjacency(self) -> sp.csr_matrix:
+        n = self.n_nodes
+        rows = np.concatenate([self.edges[:, 0], self.edges[:, 1]])
+        cols = np.concatenate([self.edges[:, 1], self.edges[:, 0]])
+        adj = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
+        adj.sort_indices()
+        return adj
+
+    @cached_property
+    def _adjacency_self_loops(self) -> sp.csr_matrix:
+        adj = (self._adjacency + sp.identity(self.n_nodes, format="csr")).tocsr()
+        adj.sort_indices()
+        return adj
+
+    def adjacency(self, self_loops: bool = False) -> sp.csr_matrix:
+        """(N, N) node-node adjacency through shared cells, CSR with ones as values.
+
+        self_loops: include the diagonal (a node is its own neighbour). The matrix is cached
+        and shared: do not modify it in place.
+        """
+        return self._adjacency_self_loops if self_loops else self._adjacency
+
+    @cached_property
+    def node_degree(self) -> np.ndarray:
+        """(N,) number of mesh neighbours of each node."""
+        return np.diff(self._adjacency.indptr)
+
+    # ----------------------------------------------------------------- components
+    @cached_property
+    def _components(self) -> tuple[int, np.ndarray]:
+        count, labels = csgraph.connected_components(self._adjacency, directed=False)
+        labels = labels.astype(np.int64)
+        labels.setflags(write=False)
+        return int(count), labels
+
+    @property
+    def n_components(self) -> int:
+        """Number of connected components (through shared edges)."""
+        return self._components[0]
+
+    @property
+    def component_labels(self) -> np.ndarray:
+        """(N,) component index of each node, numbered by first appearance."""
+        return self._components[1]
+
+    # ----------------------------------------------------------------- boundary
+    @cached_property
+    def _boundary(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        d, k = self.dim, self.dim + 1
+        # Facet j of a cell is the cell without its j-th node; that node is the "opposite" one.
+        local = np.array([[m for m in range(k) if m != j] for j in range(k)])
+        facets = self._cells[:, local].reshape(-1, d)  # (C*k, d), cell-major
+        opposite = self._cells.reshape(-1)
+        owner = np.repeat(np.arange(self.n_cells), k)
+        keys = np.sort(facets, axis=1)
+        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+        shared = counts[inverse.ravel()]
+        if (counts > 2).any():
+            bad = np.unique(owner[shared > 2])
+            raise MeshError(
+                f"non-manifold mesh: some facets are shared by more than two cells, in {_first(bad, 'cells')}"
+            )
+        on_boundary = shared == 1
+        facets, opposite, owner = facets[on_boundary], opposite[on_boundary], owner[on_boundary]
+        x = self._nodes
+        away = x[facets].mean(axis=1) - x[opposite]  # points out of the owning cell
+        if d == 1:
+            normals = np.sign(away)
+        elif d == 2:
+            tangent = x[facets[:, 1]] - x[facets[:, 0]]
+            normals = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+        else:
+            normals = np.cross(x[facets[:, 1]] - x[facets[:, 0]], x[facets[:, 2]] - x[facets[:, 0]])
+        inward = (normals * away).sum(axis=1) < 0
+        normals[inward] *= -1
+        if d >= 2:  # order facet nodes so that their orientation gives the outward normal
+            facets = facets.copy()
+            facets[inward, -2:] = facets[inward][:, [-1, -2]]
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        for arr in (facets, normals, owner):
+            arr.setflags(write=False)
+        return facets, normals, owner
+
+    @property
+    def boundary_facets(self) -> np.ndarray:
+        """(F, d) node indices of the boundary facets (points, segments or triangles).
+
+        Ordered so that their orientation matches the outward normal (in 2D the domain lies
+        to the left of each segment: outer boundaries run counter-clockwise).
+        """
+        return self._boundary[0]
+
+    @property
+    def boundary_normals(self) -> np.ndarray:
+        """(F, d) outward unit normals of :attr:`boundary_facets`."""
+        return self._boundary[1]
+
+    @property
+    def boundary_facet_cells(self) -> np.ndarray:
+        """(F,) the cell each boundary facet belongs to."""
+        return self._boundary[2]
+
+    @cached_property
+    def boundary_facet_measures(self) -> np.ndarray:
+        """(F,) size of each boundary facet (1 for points, length, area)."""
+        facets = self.boundary_facets
+        if self.dim == 1:
+            return np.ones(len(facets))
+        x = self._nodes[facets]
+        if self.dim == 2:
+            return np.linalg.norm(x[:, 1] - x[:, 0], axis=1)
+        return 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
+
+    @cached_property
+    def boundary_node_mask(self) -> np.ndarray:
+        """(N,) True for nodes on a boundary facet."""
+        mask = np.zeros(self.n_nodes, dtype=bool)
+        mask[self.boundary_facets.ravel()] = True
+        mask.setflags(write=False)
+        return mask
+
+    @cached_property
+    def boundary_node_normals(self) -> np.ndarray:
+        """(N, d) unit outward normals at boundary nodes (facet-measure weighted mean), 0 inside."""
+        acc = np.zeros_like(self._nodes)
+        weighted = self.boundary_normals * self.boundary_facet_measures[:, None]
+        for j in range(self.boundary_facets.shape[1]):
+            np.add.at(acc, self.boundary_facets[:, j], weighted)
+        norm = np.linalg.norm(acc, axis=1, keepdims=True)
+        normals = np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0)
+        normals.setflags(write=False)
+        return normals
+
+    # ----------------------------------------------------------------- quality
+    @cached_property
+    def cell_quality(self) -> np.ndarray:
+        """(C,) measure over that of the regular simplex with the same RMS edge length.
+
+        1 for equilateral cells, towards 0 for slivers.
+        """
+        k = self.dim + 1
+        x = self._nodes
+        sq = sum(
+            ((x[self._cells[:, a]] - x[self._cells[:, b]]) ** 2).sum(axis=1)
+            for a in range(k) for b in range(a + 1, k)
+        )
+        rms = np.sqrt(sq / (k * (k - 1) / 2))
+        regular = {1: 1.0, 2: math.sqrt(3) / 4, 3: 1 / (6 * math.sqrt(2))}[self.dim]
+        return self._measures / (regular * rms**self.dim)
+
+    # ----------------------------------------------------------------- I/O
+    @classmethod
+    def read(cls, path, *, orient: bool = False) -> Mesh:
+        """Read the top-dimensional simplices of any meshio-readable file.
+
+        Lower-dimensional cells (boundary lines, points) are ignored and nodes they alone use
+        are dropped; coordinate columns that are zero beyond the mesh dimension are dropped
+        (a planar mesh stored with z = 0 becomes 2D). A file whose cells are all negatively
+        oriented is flipped as a whole (a convention); ``orient=True`` flips every negative
+        cell, for files known to be untangled but inconsistently ordered.
+        """
+        import meshio
+
+        path = Path(path)
+        if not path.is_file():
+            raise MeshError(f"mesh file {path} does not exist")
+        try:
+            raw = meshio.read(path)
+        except Exception as exc:  # meshio raises many types for unreadable files
+            raise MeshError(f"cannot read mesh file {path}: {type(exc).__name__}: {exc}") from None
+        blocks = [(b.type, np.asarray(b.data)) for b in raw.cells if len(b.data)]
+        found = sorted({t for t, _ in blocks})
+        dims = [_MESHIO_DIM[t] for t, _ in blocks if t in _MESHIO_DIM]
+        if not dims:
+            raise MeshError(
+                f"mesh file {path} has no usable cells: found {found or 'no cells at all'}, but bsms "
+                "needs simplices (line, triangle or tetra); triangulate the mesh first"
+            )
+        dim = max(dims)
+        higher = [t for t in found if _NON_SIMPLEX_DIM.get(t, 0) >= dim]
+        if higher:
+            raise MeshError(
+                f"mesh file {path} mixes cell types: {found}; bsms reads one simplex type "
+                f"({SIMPLEX_TYPES[dim]} here) and cannot use {higher}: convert them to simplices"
+            )
+        cells = np.concatenate([data for t, data in blocks if _MESHIO_DIM.get(t) == dim])
+        points = np.asarray(raw.points, dtype=np.float64)
+        if points.shape[1] < dim:
+            raise MeshError(f"mesh file {path} has {points.shape[1]}D points but {SIMPLEX_TYPES[dim]} cells")
+        extra = points[:, dim:]
+        if extra.size and np.abs(extra).max() > 0:
+            raise MeshError(
+                f"mesh file {path} holds a {dim}D mesh ({SIMPLEX_TYPES[dim]} cells) embedded in "
+                f"{points.shape[1]}D with non-zero coordinates beyond axis {dim}; bsms needs it in "
+                f"its own {dim}D coordinates (e.g. z = 0 for a planar mesh)"
+            )
+        measures = signed_measures(points[:, :dim], cells) if len(cells) else np.zeros(0)
+        if (measures < 0).all():
+            cells = cells.copy()
+            cells[:, -2:] = cells[:, [-1, -2]]
+        try:
+            return cls.from_arrays(points[:, :dim], cells, drop_unused=True, orient=orient)
+        except MeshError as exc:
+            raise MeshError(f"mesh file {path}: {exc}") from None
+
+    def write(self, path, *, point_data: dict | None = None, cell_data: dict | None = None,
+              file_format: str | None = None) -> None:
+        """Write through meshio (format from the suffix unless given); points are padded to 3D.
+
+        point_data / cell_data: name -> (N, ...) / (C, ...) arrays. Single-file formats are
+        written to a temporary name and renamed, so a crash never leaves a partial file.
+        """
+        import meshio
+
+        path = Path(path)
+        points = np.zeros((self.n_nodes, 3))
+        points[:, : self.dim] = self._nodes
+        out = meshio.Mesh(
+            points,
+            [(self.cell_type, np.asarray(self._cells))],
+            point_data=dict(point_data or {}),
+            cell_data={k: [np.asarray(v)] for k, v in (cell_data or {}).items()},
+        )
+        if path.suffix.lower() in (".xdmf", ".xmf"):  # writes a companion .h5 named after it
+            meshio.write(path, out, file_format=file_format)
+            return
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent or ".")
+        os.close(fd)
+        try:
+            meshio.write(tmp, out, file_format=file_format)  # tmp keeps the suffix
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+
+
+@dataclass(frozen=True, eq=False)
+class ExtendedMesh:
+    """A mesh with one layer of cells added outside its boundary (see :func:`with_extra_layer`).
+
+    The physical mesh's nodes and cells keep their indices and come first; the layer's
+    nodes and cells follow.
+    """
+
+    mesh: Mesh
+    """The whole mesh: physical nodes/cells first, then the layer."""
+    node_outside: np.ndarray
+    """(N',) True for nodes outside the physical domain."""
+    cell_outside: np.ndarray
+    """(C',) True for cells of the extra layer."""
+
+    @property
+    def n_physical_nodes(self) -> int:
+        return int((~self.node_outside).sum())
+
+    @property
+    def n_physical_cells(self) -> int:
+        return int((~self.cell_outside).sum())
+
+
+def with_extra_layer(mesh: Mesh, thickness: float = 1.0) -> ExtendedMesh:
+    """Add one layer of cells outside the boundary of ``mesh`` (UMLS-MPM §2.3.5, automated).
+
+    Each boundary node is copied outwards along its (mitred) outward normal by ``thickness``
+    times the mean length of its mesh edges; each boundary facet and its copy span a prism
+    (segment, quad or triangular prism) split into ``d`` simplices. Splits use the facet's
+    node indices in increasing order, so neighbouring prisms agree on shared faces and the
+    layer is conforming. Particles in boundary cells then see a full ring of nodes, which
+    keeps MLS kernels non-degenerate and their weights non-negative.
+
+    Raises MeshError if a boundary node is a cusp too sharp to offset (the outward directions
+    of its facets disagree), or if the layer would contain degenerate cells.
+    """
+    if thickness <= 0:
+        raise ValueError(f"thickness must be positive, got {thickness}")
+    d, n = mesh.dim, mesh.n_nodes
+    facets, normals = mesh.boundary_facets, mesh.boundary_normals
+    node_normal = mesh.boundary_node_normals
+    # Mitre: the smallest projection of the node normal on its facets' normals.
+    alignment = np.full(n, np.inf)
+    for j in range(facets.shape[1]):
+        np.minimum.at(alignment, facets[:, j], (node_normal[facets[:, j]] * normals).sum(axis=1))
+    boundary = np.flatnonzero(mesh.boundary_node_mask)
+    cusps = boundary[alignment[boundary] < 0.1]
+    if cusps.size:
+        raise MeshError(
+            f"cannot add an extra layer: boundary {_first(cusps, 'nodes')} are cusps whose facets "
+            "face opposite ways; smooth the geometry or refine the mesh there"
+        )
+    spacing = np.zeros(n)
+    lengths = mesh.edge_lengths
+    np.add.at(spacing, mesh.edges[:, 0], lengths)
+    np.add.at(spacing, mesh.edges[:, 1], lengths)
+    spacing /= np.maximum(mesh.node_degree, 1)
+    stretch = 1.0 / np.clip(alignment[boundary], 0.5, 1.0)
+    offset_nodes = mesh.nodes[boundary] + (thickness * spacing[boundary] * stretch)[:, None] * node_normal[boundary]
+    copy_of = np.full(n, -1, dtype=np.int64)
+    copy_of[boundary] = n + np.arange(boundary.size)  # keeps the order: a < b  =>  a' < b'
+
+    # Staircase split of the prism over facet (s_0 < ... < s_{d-1}) and its copy:
+    # simplex k = (s_0 .. s_{d-1-k}, s'_{d-1-k} .. s'_{d-1}).
+    s = np.sort(facets, axis=1)
+    s_copy = copy_of[s]
+    layer = np.concatenate(
+        [np.concatenate([s[:, : d - k], s_copy[:, d - 1 - k:]], axis=1) for k in range(d)], axis=0
+    )
+    nodes = np.concatenate([mesh.nodes, offset_nodes], axis=0)
+    flip = signed_measures(nodes, layer) < 0
+    layer[flip, -2:] = layer[flip][:, [-1, -2]]
+    try:
+        extended = Mesh(nodes, np.concatenate([mesh.cells, layer], axis=0))
+    except MeshError as exc:
+        raise MeshError(f"the extra layer is invalid ({exc}); the boundary is too irregular for it") from None
+    node_outside = np.zeros(extended.n_nodes, dtype=bool)
+    node_outside[n:] = True
+    cell_outside = np.zeros(extended.n_cells, dtype=bool)
+    cell_outside[mesh.n_cells:] = True
+    return ExtendedMesh(extended, node_outside, cell_outside)
