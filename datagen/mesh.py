@@ -8,7 +8,9 @@ is computed on first use and cached.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import math
 import os
 import tempfile
@@ -64,6 +66,18 @@ def _cell_max_edge(nodes: np.ndarray, cells: np.ndarray) -> np.ndarray:
         for b in range(a + 1, k):
             longest = np.maximum(longest, np.linalg.norm(nodes[cells[:, a]] - nodes[cells[:, b]], axis=1))
     return longest
+
+
+def _quality(nodes: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(C,) |measure| over that of the regular simplex with the same RMS edge length."""
+    d, k = nodes.shape[1], cells.shape[1]
+    squares = sum(
+        ((nodes[cells[:, a]] - nodes[cells[:, b]]) ** 2).sum(axis=1)
+        for a in range(k) for b in range(a + 1, k)
+    )
+    rms = np.sqrt(squares / (k * (k - 1) / 2))
+    regular = {1: 1.0, 2: math.sqrt(3) / 4, 3: 1 / (6 * math.sqrt(2))}[d]
+    return np.abs(signed_measures(nodes, cells)) / (regular * rms**d)
 
 
 def _as_nodes(nodes) -> np.ndarray:
@@ -391,15 +405,7 @@ class Mesh:
 
         1 for equilateral cells, towards 0 for slivers.
         """
-        k = self.dim + 1
-        x = self._nodes
-        sq = sum(
-            ((x[self._cells[:, a]] - x[self._cells[:, b]]) ** 2).sum(axis=1)
-            for a in range(k) for b in range(a + 1, k)
-        )
-        rms = np.sqrt(sq / (k * (k - 1) / 2))
-        regular = {1: 1.0, 2: math.sqrt(3) / 4, 3: 1 / (6 * math.sqrt(2))}[self.dim]
-        return self._measures / (regular * rms**self.dim)
+        return _quality(self._nodes, self._cells)
 
     # ----------------------------------------------------------------- I/O
     @classmethod
@@ -417,10 +423,13 @@ class Mesh:
         path = Path(path)
         if not path.is_file():
             raise MeshError(f"mesh file {path} does not exist")
-        try:
-            raw = meshio.read(path)
-        except Exception as exc:  # meshio raises many types for unreadable files
-            raise MeshError(f"cannot read mesh file {path}: {type(exc).__name__}: {exc}") from None
+        chatter = io.StringIO()
+        try:  # meshio prints to the console and may even sys.exit on files it cannot parse
+            with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
+                raw = meshio.read(path)
+        except (Exception, SystemExit) as exc:
+            detail = " ".join(chatter.getvalue().split()) or f"{type(exc).__name__}: {exc}"
+            raise MeshError(f"cannot read mesh file {path}: {detail}") from None
         blocks = [(b.type, np.asarray(b.data)) for b in raw.cells if len(b.data)]
         found = sorted({t for t, _ in blocks})
         dims = [_MESHIO_DIM[t] for t, _ in blocks if t in _MESHIO_DIM]
@@ -480,7 +489,9 @@ class Mesh:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent or ".")
         os.close(fd)
         try:
-            meshio.write(tmp, out, file_format=file_format)  # tmp keeps the suffix
+            # tmp keeps the suffix; .msh is ambiguous in meshio (ANSYS first), we mean gmsh
+            default = "gmsh" if path.suffix.lower() == ".msh" else None
+            meshio.write(tmp, out, file_format=file_format or default)
             os.replace(tmp, path)
         finally:
             if os.path.exists(tmp):
@@ -511,28 +522,19 @@ class ExtendedMesh:
         return int((~self.cell_outside).sum())
 
 
-def with_extra_layer(mesh: Mesh, thickness: float = 1.0) -> ExtendedMesh:
-    """Add one layer of cells outside the boundary of ``mesh`` (UMLS-MPM §2.3.5, automated).
-
-    Each boundary node is copied outwards along its (mitred) outward normal by ``thickness``
-    times the mean length of its mesh edges; each boundary facet and its copy span a prism
-    (segment, quad or triangular prism) split into ``d`` simplices. Splits use the facet's
-    node indices in increasing order, so neighbouring prisms agree on shared faces and the
-    layer is conforming. Particles in boundary cells then see a full ring of nodes, which
-    keeps MLS kernels non-degenerate and their weights non-negative.
-
-    Raises MeshError if a boundary node is a cusp too sharp to offset (the outward directions
-    of its facets disagree), or if the layer would contain degenerate cells.
-    """
-    if thickness <= 0:
-        raise ValueError(f"thickness must be positive, got {thickness}")
-    d, n = mesh.dim, mesh.n_nodes
+def _layer_offsets(mesh: Mesh, thickness: float) -> tuple[np.ndarray, np.ndarray]:
+    """Boundary nodes (B,) and their outward offsets (B, d) for the extra layer."""
     facets, normals = mesh.boundary_facets, mesh.boundary_normals
-    node_normal = mesh.boundary_node_normals
-    # Mitre: the smallest projection of the node normal on its facets' normals.
-    alignment = np.full(n, np.inf)
+    # Direction: the plain mean of the facet normals at a node (the bisector in 2D), so that
+    # short facets next to long ones are not left behind at sharp corners.
+    direction = np.zeros_like(mesh.nodes)
     for j in range(facets.shape[1]):
-        np.minimum.at(alignment, facets[:, j], (node_normal[facets[:, j]] * normals).sum(axis=1))
+        np.add.at(direction, facets[:, j], normals)
+    direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
+    # Mitre: the smallest projection of the direction on the normals of the node's facets.
+    alignment = np.full(mesh.n_nodes, np.inf)
+    for j in range(facets.shape[1]):
+        np.minimum.at(alignment, facets[:, j], (direction[facets[:, j]] * normals).sum(axis=1))
     boundary = np.flatnonzero(mesh.boundary_node_mask)
     cusps = boundary[alignment[boundary] < 0.1]
     if cusps.size:
@@ -540,26 +542,60 @@ def with_extra_layer(mesh: Mesh, thickness: float = 1.0) -> ExtendedMesh:
             f"cannot add an extra layer: boundary {_first(cusps, 'nodes')} are cusps whose facets "
             "face opposite ways; smooth the geometry or refine the mesh there"
         )
-    spacing = np.zeros(n)
-    lengths = mesh.edge_lengths
-    np.add.at(spacing, mesh.edges[:, 0], lengths)
-    np.add.at(spacing, mesh.edges[:, 1], lengths)
+    spacing = np.zeros(mesh.n_nodes)  # mean length of each node's edges
+    np.add.at(spacing, mesh.edges[:, 0], mesh.edge_lengths)
+    np.add.at(spacing, mesh.edges[:, 1], mesh.edge_lengths)
     spacing /= np.maximum(mesh.node_degree, 1)
-    stretch = 1.0 / np.clip(alignment[boundary], 0.5, 1.0)
-    offset_nodes = mesh.nodes[boundary] + (thickness * spacing[boundary] * stretch)[:, None] * node_normal[boundary]
-    copy_of = np.full(n, -1, dtype=np.int64)
-    copy_of[boundary] = n + np.arange(boundary.size)  # keeps the order: a < b  =>  a' < b'
+    length = thickness * spacing[boundary] / np.clip(alignment[boundary], 0.5, 1.0)
+    return boundary, length[:, None] * direction[boundary]
 
-    # Staircase split of the prism over facet (s_0 < ... < s_{d-1}) and its copy:
-    # simplex k = (s_0 .. s_{d-1-k}, s'_{d-1-k} .. s'_{d-1}).
+
+def _prism_simplices(facets: np.ndarray, copy_of: np.ndarray) -> np.ndarray:
+    """Split the prism between each facet (F, d) and its offset copy into d simplices (d*F, d+1).
+
+    Staircase split over the facet's nodes in increasing order s_0 < ... < s_{d-1}:
+    simplex k = (s_0 .. s_{d-1-k}, s'_{d-1-k} .. s'_{d-1}). Two prisms sharing a face split
+    it the same way, because the split depends only on the (sorted) shared nodes.
+    """
+    d = facets.shape[1]
     s = np.sort(facets, axis=1)
     s_copy = copy_of[s]
-    layer = np.concatenate(
+    return np.concatenate(
         [np.concatenate([s[:, : d - k], s_copy[:, d - 1 - k:]], axis=1) for k in range(d)], axis=0
     )
-    nodes = np.concatenate([mesh.nodes, offset_nodes], axis=0)
-    flip = signed_measures(nodes, layer) < 0
-    layer[flip, -2:] = layer[flip][:, [-1, -2]]
+
+
+def with_extra_layer(mesh: Mesh, thickness: float = 1.0, min_quality: float = 0.1) -> ExtendedMesh:
+    """Add one layer of cells outside the boundary of ``mesh`` (UMLS-MPM §2.3.5, automated).
+
+    Each boundary node is copied outwards along the bisector of its facet normals by
+    ``thickness`` times the mean length of its mesh edges (mitred at corners); each boundary
+    facet and its copy span a prism (segment, quad or triangular prism) split into ``d``
+    simplices, conforming across neighbouring prisms. Where the layer gets squeezed (small
+    holes, concave spots) the offsets of the cells below ``min_quality`` are halved, up to
+    eight times. Particles in boundary cells then see a full ring of nodes, which keeps MLS
+    kernels non-degenerate and their weights non-negative.
+
+    Returns an :class:`ExtendedMesh`: the physical nodes and cells keep their indices.
+    Raises MeshError if a boundary node is a cusp too sharp to offset, or if the layer would
+    contain degenerate cells.
+    """
+    if thickness <= 0:
+        raise ValueError(f"thickness must be positive, got {thickness}")
+    n = mesh.n_nodes
+    boundary, offsets = _layer_offsets(mesh, thickness)
+    copy_of = np.full(n, -1, dtype=np.int64)
+    copy_of[boundary] = n + np.arange(boundary.size)  # keeps the order: a < b  =>  a' < b'
+    layer = _prism_simplices(mesh.boundary_facets, copy_of)
+    scale = np.ones(boundary.size)
+    for _ in range(8):
+        nodes = np.concatenate([mesh.nodes, mesh.nodes[boundary] + scale[:, None] * offsets], axis=0)
+        flip = signed_measures(nodes, layer) < 0
+        layer[flip, -2:] = layer[flip][:, [-1, -2]]
+        squeezed = layer[_quality(nodes, layer) < min_quality]
+        if squeezed.size == 0:
+            break
+        scale[squeezed[squeezed >= n] - n] *= 0.5
     try:
         extended = Mesh(nodes, np.concatenate([mesh.cells, layer], axis=0))
     except MeshError as exc:
