@@ -1,4 +1,4 @@
-"""datagen.shapes: every shape is a valid mesh of the requested size, deterministic, with the right topology."""
+"""datagen.shapes: valid meshes of the requested size, deterministic, with the right topology."""
 
 import math
 import multiprocessing
