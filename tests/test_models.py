@@ -1,0 +1,157 @@
+"""bsms.models and bsms.normalize: the physics-free core networks and the feature normaliser."""
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from bsms.models import BSMSGNN, EdgeSet, Level, MeshGraphNets, Transition, mlp, pool, unpool
+from bsms.normalize import Normalizer
+
+EDGE_DIMS = [3, 2]  # a mesh edge set and a contact edge set
+
+
+def random_levels(sizes: list[int], generator: torch.Generator) -> list[Level]:
+    """A synthetic multi-level graph: random edges per level, random row-stochastic pooling."""
+    levels = []
+    for l, n in enumerate(sizes):
+        edge_sets = []
+        for dim, count in zip(EDGE_DIMS, (3 * n, n // 2), strict=True):
+            index = torch.randint(0, n, (2, count), generator=generator)
+            edge_sets.append(EdgeSet(index, torch.randn(count, dim, generator=generator)))
+        down = None
+        if l + 1 < len(sizes):
+            n_coarse = sizes[l + 1]
+            fine = torch.randint(0, n, (4 * n_coarse,), generator=generator)
+            coarse = torch.arange(n_coarse).repeat(4)
+            weight = torch.rand(4 * n_coarse, generator=generator, dtype=torch.float32)
+            totals = torch.zeros(n_coarse).index_add_(0, coarse, weight)
+            down = Transition(fine, coarse, weight / totals[coarse], n_coarse)
+        levels.append(Level(edge_sets, down))
+    return levels
+
+
+def batch_levels(a: list[Level], b: list[Level], sizes_a: list[int]) -> list[Level]:
+    """Disjoint union of two multi-level graphs, every index offset by the first graph's sizes."""
+    joined = []
+    for l, (la, lb) in enumerate(zip(a, b, strict=True)):
+        edge_sets = [
+            EdgeSet(torch.cat([ea.index, eb.index + sizes_a[l]], 1), torch.cat([ea.features, eb.features]))
+            for ea, eb in zip(la.edge_sets, lb.edge_sets, strict=True)
+        ]
+        down = None
+        if la.down is not None:
+            down = Transition(
+                torch.cat([la.down.fine, lb.down.fine + sizes_a[l]]),
+                torch.cat([la.down.coarse, lb.down.coarse + sizes_a[l + 1]]),
+                torch.cat([la.down.weight, lb.down.weight]),
+                la.down.n_coarse + lb.down.n_coarse,
+            )
+        joined.append(Level(edge_sets, down))
+    return joined
+
+
+def make_models():
+    torch.manual_seed(0)
+    return [
+        BSMSGNN(5, 2, EDGE_DIMS, n_levels=3, latent=32, hidden=32),
+        MeshGraphNets(5, 2, EDGE_DIMS, n_passes=3, latent=32, hidden=32),
+    ]
+
+
+def test_mlp_follows_the_thesis():
+    encoder = mlp(7, 128)
+    linears = [m for m in encoder if isinstance(m, nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in linears] == [(7, 128), (128, 128), (128, 128)]
+    assert isinstance(encoder[-1], nn.LayerNorm)
+    decoder = mlp(128, 2, layer_norm=False)
+    assert not any(isinstance(m, nn.LayerNorm) for m in decoder)
+    assert sum(isinstance(m, nn.ReLU) for m in decoder) == 2
+
+
+def test_pool_unpool_are_transposes():
+    g = torch.Generator().manual_seed(1)
+    (level, _) = random_levels([20, 7], g)
+    t = level.down
+    fine = torch.randn(20, 4, generator=g)
+    coarse = torch.randn(7, 4, generator=g)
+    # <pool(f), c> == <f, unpool(c)>: down and up are transposes of one operator.
+    lhs = (pool(fine, t) * coarse).sum()
+    rhs = (fine * unpool(coarse, t, 20)).sum()
+    torch.testing.assert_close(lhs, rhs)
+    # Row-stochastic down operator: a constant field stays constant on the coarse level.
+    torch.testing.assert_close(pool(torch.full((20, 3), 2.5), t), torch.full((7, 3), 2.5))
+
+
+@pytest.mark.parametrize("index", [0, 1])
+def test_batch_of_two_graphs_equals_each_alone(index):
+    model = make_models()[index].eval()
+    g = torch.Generator().manual_seed(2)
+    sizes_a, sizes_b = [30, 14, 6], [45, 21, 9]
+    a, b = random_levels(sizes_a, g), random_levels(sizes_b, g)
+    xa, xb = torch.randn(30, 5, generator=g), torch.randn(45, 5, generator=g)
+    with torch.no_grad():
+        alone = torch.cat([model(xa, a), model(xb, b)])
+        together = model(torch.cat([xa, xb]), batch_levels(a, b, sizes_a))
+    torch.testing.assert_close(together, alone, rtol=1e-5, atol=1e-5)
+
+
+def test_bsms_gnn_uses_every_level_and_adapts_depth():
+    model = make_models()[0]
+    g = torch.Generator().manual_seed(3)
+    levels = random_levels([30, 14, 6], g)
+    x = torch.randn(30, 5, generator=g)
+    model(x, levels).square().sum().backward()
+    for name, parameter in model.named_parameters():
+        assert parameter.grad is not None and parameter.grad.abs().sum() > 0, name
+    # Fewer levels than the model has: runs on the available depth; more: uses the first three.
+    assert model(x, levels[:2]).shape == (30, 2)
+    deeper = random_levels([30, 14, 6, 3], g)
+    assert model(x, deeper).shape == (30, 2)
+
+
+def test_meshgraphnets_sees_only_the_mesh_level():
+    model = make_models()[1].eval()
+    g = torch.Generator().manual_seed(4)
+    levels = random_levels([30, 14, 6], g)
+    x = torch.randn(30, 5, generator=g)
+    with torch.no_grad():
+        torch.testing.assert_close(model(x, levels), model(x, levels[:1]))
+    assert len(model.blocks) == 3 and len(MeshGraphNets(5, 2, EDGE_DIMS).blocks) == 15
+
+
+def test_block_rejects_wrong_number_of_edge_sets():
+    model = make_models()[0]
+    g = torch.Generator().manual_seed(5)
+    levels = random_levels([10, 4, 2], g)
+    broken = [Level(level.edge_sets[:1], level.down) for level in levels]
+    with pytest.raises(ValueError, match="block expects 2 edge sets, got 1"):
+        model(torch.randn(10, 5), broken)
+
+
+def test_normalizer_statistics_and_freezing():
+    rng = np.random.default_rng(0)
+    batches = [rng.normal([1.0, -3.0, 0.0], [2.0, 0.5, 0.0], size=(50, 3)) for _ in range(4)]
+    norm = Normalizer(3, max_accumulations=3)
+    for batch in batches:
+        norm.accumulate(torch.tensor(batch, dtype=torch.float32))
+    seen = np.concatenate(batches[:3])  # the fourth came after freezing
+    assert norm.frozen and int(norm.accumulations) == 3
+    np.testing.assert_allclose(norm.mean.numpy(), seen.mean(axis=0), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(norm.std.numpy()[:2], seen.std(axis=0)[:2], rtol=1e-5)
+    assert norm.std[2] == pytest.approx(1e-8)  # constant feature: floor, not division by zero
+    x = torch.tensor(batches[3], dtype=torch.float32)
+    torch.testing.assert_close(norm.inverse(norm(x)), x, rtol=1e-5, atol=1e-5)
+    z = norm(torch.tensor(seen, dtype=torch.float32))
+    np.testing.assert_allclose(z[:, :2].mean(0).numpy(), 0.0, atol=1e-5)
+    np.testing.assert_allclose(z[:, :2].std(0, unbiased=False).numpy(), 1.0, rtol=1e-4)
+
+
+def test_normalizer_state_travels_with_the_state_dict():
+    norm = Normalizer(2)
+    norm.accumulate(torch.tensor([[1.0, 2.0], [3.0, 6.0]]))
+    fresh = Normalizer(2)
+    fresh.load_state_dict(norm.state_dict())
+    x = torch.tensor([[0.5, -1.0]])
+    torch.testing.assert_close(fresh(x), norm(x))
+    assert set(norm.state_dict()) == {"count", "accumulations", "total", "total_squares"}
