@@ -5,30 +5,39 @@ import pytest
 import torch
 from torch import nn
 
-from bsms.models import BSMSGNN, EdgeSet, Level, MeshGraphNets, Transition, mlp, pool, unpool
+from bsms.models import BSMSGNN, EdgeSet, Level, MeshGraphNets, SparseMap, apply_map, mlp
 from bsms.normalize import Normalizer
 
 EDGE_DIMS = [3, 2]  # a mesh edge set and a contact edge set
 
 
 def random_levels(sizes: list[int], generator: torch.Generator) -> list[Level]:
-    """A synthetic multi-level graph: random edges per level, random row-stochastic pooling."""
+    """A synthetic multi-level graph: random edges per level, random averaging maps between levels."""
     levels = []
     for l, n in enumerate(sizes):
         edge_sets = []
         for dim, count in zip(EDGE_DIMS, (3 * n, n // 2), strict=True):
             index = torch.randint(0, n, (2, count), generator=generator)
             edge_sets.append(EdgeSet(index, torch.randn(count, dim, generator=generator)))
-        down = None
+        down = up = None
         if l + 1 < len(sizes):
             n_coarse = sizes[l + 1]
-            fine = torch.randint(0, n, (4 * n_coarse,), generator=generator)
-            coarse = torch.arange(n_coarse).repeat(4)
-            weight = torch.rand(4 * n_coarse, generator=generator, dtype=torch.float32)
-            totals = torch.zeros(n_coarse).index_add_(0, coarse, weight)
-            down = Transition(fine, coarse, weight / totals[coarse], n_coarse)
-        levels.append(Level(edge_sets, down))
+            fine = torch.cat([torch.arange(n), torch.randint(0, n, (3 * n_coarse,), generator=generator)])
+            coarse = torch.cat([torch.randint(0, n_coarse, (n,), generator=generator), torch.arange(n_coarse).repeat(3)])
+            weight = torch.rand(fine.shape[0], generator=generator) + 0.1
+            down = SparseMap(coarse, fine, weight / segment_sum(weight, coarse, n_coarse)[coarse], n_coarse)
+            up = SparseMap(fine, coarse, weight / segment_sum(weight, fine, n)[fine], n)
+        levels.append(Level(edge_sets, down, up))
     return levels
+
+
+def segment_sum(values: torch.Tensor, segments: torch.Tensor, n: int) -> torch.Tensor:
+    return torch.zeros(n).index_add_(0, segments, values)
+
+
+def offset_map(a: SparseMap, b: SparseMap, rows: int, cols: int) -> SparseMap:
+    return SparseMap(torch.cat([a.rows, b.rows + rows]), torch.cat([a.cols, b.cols + cols]),
+                     torch.cat([a.weights, b.weights]), a.n_out + b.n_out)
 
 
 def batch_levels(a: list[Level], b: list[Level], sizes_a: list[int]) -> list[Level]:
@@ -39,15 +48,11 @@ def batch_levels(a: list[Level], b: list[Level], sizes_a: list[int]) -> list[Lev
             EdgeSet(torch.cat([ea.index, eb.index + sizes_a[l]], 1), torch.cat([ea.features, eb.features]))
             for ea, eb in zip(la.edge_sets, lb.edge_sets, strict=True)
         ]
-        down = None
+        down = up = None
         if la.down is not None:
-            down = Transition(
-                torch.cat([la.down.fine, lb.down.fine + sizes_a[l]]),
-                torch.cat([la.down.coarse, lb.down.coarse + sizes_a[l + 1]]),
-                torch.cat([la.down.weight, lb.down.weight]),
-                la.down.n_coarse + lb.down.n_coarse,
-            )
-        joined.append(Level(edge_sets, down))
+            down = offset_map(la.down, lb.down, sizes_a[l + 1], sizes_a[l])
+            up = offset_map(la.up, lb.up, sizes_a[l], sizes_a[l + 1])
+        joined.append(Level(edge_sets, down, up))
     return joined
 
 
@@ -69,18 +74,15 @@ def test_mlp_follows_the_thesis():
     assert sum(isinstance(m, nn.ReLU) for m in decoder) == 2
 
 
-def test_pool_unpool_are_transposes():
+def test_maps_average_and_keep_constants():
     g = torch.Generator().manual_seed(1)
     (level, _) = random_levels([20, 7], g)
-    t = level.down
-    fine = torch.randn(20, 4, generator=g)
-    coarse = torch.randn(7, 4, generator=g)
-    # <pool(f), c> == <f, unpool(c)>: down and up are transposes of one operator.
-    lhs = (pool(fine, t) * coarse).sum()
-    rhs = (fine * unpool(coarse, t, 20)).sum()
-    torch.testing.assert_close(lhs, rhs)
-    # Row-stochastic down operator: a constant field stays constant on the coarse level.
-    torch.testing.assert_close(pool(torch.full((20, 3), 2.5), t), torch.full((7, 3), 2.5))
+    torch.testing.assert_close(apply_map(torch.full((20, 3), 2.5), level.down), torch.full((7, 3), 2.5))
+    torch.testing.assert_close(apply_map(torch.full((7, 3), -1.0), level.up), torch.full((20, 3), -1.0))
+    # Each output is a convex combination: bounded by the inputs it draws from.
+    values = torch.randn(20, 1, generator=g)
+    pooled = apply_map(values, level.down)
+    assert pooled.max() <= values.max() and pooled.min() >= values.min()
 
 
 @pytest.mark.parametrize("index", [0, 1])
@@ -124,7 +126,7 @@ def test_block_rejects_wrong_number_of_edge_sets():
     model = make_models()[0]
     g = torch.Generator().manual_seed(5)
     levels = random_levels([10, 4, 2], g)
-    broken = [Level(level.edge_sets[:1], level.down) for level in levels]
+    broken = [Level(level.edge_sets[:1], level.down, level.up) for level in levels]
     with pytest.raises(ValueError, match="block expects 2 edge sets, got 1"):
         model(torch.randn(10, 5), broken)
 

@@ -15,36 +15,35 @@ from bsms.models.blocks import EdgeSet, MessagePassingBlock
 from bsms.models.mlp import mlp
 
 
-class Transition(NamedTuple):
-    """Weights of the move between level l and level l+1 (thesis §4.3.2), as COO triplets.
+class SparseMap(NamedTuple):
+    """A linear map between levels as COO triplets: ``out[rows] += weights * x[cols]``.
 
-    ``fine (T,)`` indexes level-l nodes, ``coarse (T,)`` level-(l+1) nodes, ``weight (T,)`` is
-    the contribution C_ij of fine node i to coarse node j; ``n_coarse`` the level-(l+1) size.
+    rows: (T,) output nodes; cols: (T,) input nodes; weights: (T,); n_out: output size.
+    The down map of the bi-stride hierarchy takes level l to l+1 (weighted averages onto the
+    kept nodes, thesis §4.3.2); the up map returns level l+1 to level l.
     """
 
-    fine: Tensor
-    coarse: Tensor
-    weight: Tensor
-    n_coarse: int
+    rows: Tensor
+    cols: Tensor
+    weights: Tensor
+    n_out: int
 
 
 class Level(NamedTuple):
-    """One level of a multi-level graph: its edge sets and the transition to the next level."""
+    """One level of a multi-level graph: its edge sets and the maps to and from the next level.
+
+    ``down`` (level l -> l+1) and ``up`` (l+1 -> l) are None on the coarsest level.
+    """
 
     edge_sets: list[EdgeSet]
-    down: Transition | None
+    down: SparseMap | None
+    up: SparseMap | None
 
 
-def pool(v: Tensor, transition: Transition) -> Tensor:
-    """Down: v_j = sum_i C_ij v_i over fine i, for each coarse j. (N_l, H) -> (N_l+1, H)."""
-    out = v.new_zeros(transition.n_coarse, v.shape[1])
-    return out.index_add_(0, transition.coarse, transition.weight[:, None] * v[transition.fine])
-
-
-def unpool(v: Tensor, transition: Transition, n_fine: int) -> Tensor:
-    """Up: v_i = sum_j C_ij v_j over coarse j, for each fine i. (N_l+1, H) -> (N_l, H)."""
-    out = v.new_zeros(n_fine, v.shape[1])
-    return out.index_add_(0, transition.fine, transition.weight[:, None] * v[transition.coarse])
+def apply_map(v: Tensor, sparse_map: SparseMap) -> Tensor:
+    """(N_in, H) -> (n_out, H): out_r = sum over triplets (r, c, w) of w * v_c."""
+    out = v.new_zeros(sparse_map.n_out, v.shape[1])
+    return out.index_add_(0, sparse_map.rows, sparse_map.weights[:, None] * v[sparse_map.cols])
 
 
 class BSMSGNN(nn.Module):
@@ -82,9 +81,9 @@ class BSMSGNN(nn.Module):
         for l in range(depth - 1):
             v = self.down_blocks[l](v, levels[l].edge_sets)
             skips.append(v)
-            v = pool(v, levels[l].down)
+            v = apply_map(v, levels[l].down)
         v = self.bottom_block(v, levels[depth - 1].edge_sets)
         for l in reversed(range(depth - 1)):
-            v = unpool(v, levels[l].down, skips[l].shape[0])
+            v = apply_map(v, levels[l].up)
             v = self.up_blocks[l](v, levels[l].edge_sets) + skips[l]
         return self.decoder(v)
