@@ -1,0 +1,128 @@
+"""bsms.data and the LearnedSimulator: batching of different meshes, invariances."""
+
+import numpy as np
+import pytest
+import torch
+from torch_geometric.data import Batch
+
+from bsms.data import LevelGraph, MeshLevels, NodeType, frame_graph
+from bsms.graph import bistride_levels, coarsen_contacts, contact_edges
+from bsms.models.simulator import LearnedSimulator
+from datagen import shapes
+
+N_LEVELS = 3
+
+
+def sample(mesh, seed: int, contact: bool = False) -> LevelGraph:
+    rng = np.random.default_rng(seed)
+    hierarchy = bistride_levels(mesh, mesh.nodes, levels=N_LEVELS, seeding="close_center")
+    pos = mesh.nodes + 0.01 * rng.normal(size=mesh.nodes.shape)
+    node_type = np.where(mesh.boundary_node_mask & (mesh.nodes[:, 0] < mesh.nodes[:, 0].min() + 0.05),
+                         NodeType.CLAMPED, NodeType.FREE)
+    contacts = None
+    if contact:
+        body = np.zeros(mesh.n_nodes, dtype=np.int64)
+        contacts = coarsen_contacts(hierarchy, contact_edges(pos, body, 0.5 * mesh.edge_length_stats.min,
+                                                             exclude=mesh.edges))
+    return frame_graph(
+        MeshLevels.from_hierarchy(hierarchy), rest_pos=mesh.nodes, pos=pos,
+        velocity=rng.normal(size=mesh.nodes.shape), node_type=node_type,
+        target=rng.normal(size=mesh.nodes.shape), contacts=contacts,
+    )
+
+
+@pytest.fixture(scope="module")
+def graphs():
+    return [sample(shapes.disk(1.0, 0.2), 0), sample(shapes.glyph("B", 0.06), 1)]
+
+
+def models(contact: bool = False):
+    torch.manual_seed(0)
+    return [
+        LearnedSimulator("bsms_gnn", 2, n_levels=N_LEVELS, contact=contact, latent=32),
+        LearnedSimulator("meshgraphnets", 2, contact=contact, latent=32, n_passes=3),
+    ]
+
+
+def warm_up(model, graph):
+    """Feed the normalisers once so that they are not the identity."""
+    model.loss(graph, accumulate=True)
+    return model.eval()
+
+
+def test_batch_offsets_every_level(graphs):
+    batch = Batch.from_data_list(graphs)
+    a, b = graphs
+    for l in range(N_LEVELS):
+        n_a = a[f"n_nodes_{l}"]
+        assert batch.level_size(l) == n_a + b[f"n_nodes_{l}"]
+        torch.testing.assert_close(batch[f"edge_index_{l}"][:, a[f"edge_index_{l}"].shape[1]:],
+                                   b[f"edge_index_{l}"] + n_a)
+        torch.testing.assert_close(batch[f"nodes_{l}"][n_a:], b[f"nodes_{l}"] + a.num_nodes)
+    for l in range(N_LEVELS - 1):
+        split = a[f"down_rows_{l}"].shape[0]
+        torch.testing.assert_close(batch[f"down_rows_{l}"][split:], b[f"down_rows_{l}"] + a[f"n_nodes_{l + 1}"])
+        torch.testing.assert_close(batch[f"down_cols_{l}"][split:], b[f"down_cols_{l}"] + a[f"n_nodes_{l}"])
+        split = a[f"up_rows_{l}"].shape[0]
+        torch.testing.assert_close(batch[f"up_rows_{l}"][split:], b[f"up_rows_{l}"] + a[f"n_nodes_{l}"])
+        torch.testing.assert_close(batch[f"up_cols_{l}"][split:], b[f"up_cols_{l}"] + a[f"n_nodes_{l + 1}"])
+        for kind in ("down", "up"):  # weights are concatenated, never offset
+            torch.testing.assert_close(batch[f"{kind}_weights_{l}"],
+                                       torch.cat([a[f"{kind}_weights_{l}"], b[f"{kind}_weights_{l}"]]))
+
+
+@pytest.mark.parametrize("index", [0, 1])
+def test_batch_of_two_meshes_equals_each_alone(graphs, index):
+    model = warm_up(models()[index], graphs[0])
+    with torch.no_grad():
+        alone = torch.cat([model(g) for g in graphs])
+        together = model(Batch.from_data_list(graphs))
+    torch.testing.assert_close(together, alone, rtol=1e-5, atol=1e-5)
+
+
+def test_batch_with_contacts_equals_each_alone():
+    graphs = [sample(shapes.annulus(0.5, 1.0, 0.15), 2, contact=True),
+              sample(shapes.glyph("C", 0.06), 3, contact=True)]
+    model = warm_up(models(contact=True)[0], graphs[0])
+    with torch.no_grad():
+        alone = torch.cat([model(g) for g in graphs])
+        together = model(Batch.from_data_list(graphs))
+    torch.testing.assert_close(together, alone, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("index", [0, 1])
+def test_translation_invariance(graphs, index):
+    graph = graphs[1]
+    model = warm_up(models()[index], graph)
+    shifted = graph.clone()
+    shifted.pos = graph.pos + torch.tensor([3.0, -2.0])
+    shifted.rest_pos = graph.rest_pos + torch.tensor([-1.0, 5.0])
+    with torch.no_grad():
+        torch.testing.assert_close(model(shifted), model(graph), rtol=1e-5, atol=1e-5)
+
+
+def test_loss_only_counts_free_nodes(graphs):
+    graph = graphs[0].clone()
+    model = warm_up(models()[0], graph)
+    clamped = graph.node_type != NodeType.FREE
+    assert clamped.any()
+    changed = graph.clone()
+    changed.target = graph.target.clone()
+    changed.target[clamped] += 100.0
+    with torch.no_grad():
+        assert model.loss(changed) == model.loss(graph)
+        assert (model.velocity_change(graph)[clamped] == 0).all()
+
+
+def test_bad_inputs():
+    with pytest.raises(ValueError, match="unknown model 'gcn'; choose one of bsms_gnn, meshgraphnets"):
+        LearnedSimulator("gcn", 2)
+    mesh = shapes.disk(1.0, 0.3)
+    levels = MeshLevels.from_hierarchy(bistride_levels(mesh, mesh.nodes, levels=2))
+    with pytest.raises(ValueError, match="must all be \\(N, d\\) with N = "):
+        frame_graph(levels, rest_pos=mesh.nodes, pos=mesh.nodes[:-1], velocity=mesh.nodes,
+                    node_type=np.zeros(mesh.n_nodes, dtype=int))
+    graph = frame_graph(levels, rest_pos=mesh.nodes, pos=mesh.nodes, velocity=mesh.nodes,
+                        node_type=np.zeros(mesh.n_nodes, dtype=int))
+    with pytest.raises(ValueError, match="the graph has 2 levels but the model needs 3"):
+        LearnedSimulator("bsms_gnn", 2, n_levels=3)(graph)
