@@ -4,6 +4,7 @@ import meshio
 import numpy as np
 import pytest
 
+from datagen import shapes
 from datagen.mesh import Mesh, MeshError, with_extra_layer
 
 # Unit cube split into the six Kuhn tetrahedra around the main diagonal 0-7.
@@ -230,8 +231,18 @@ def test_read_inconsistent_orientation_with_orient(tmp_path):
 
 
 # ----------------------------------------------------------------------------- extra layer
-@pytest.mark.parametrize("make", [square_with_centre, cube, lambda: Mesh([[0.0], [1.0], [2.0]], [[0, 1], [1, 2]])])
-def test_extra_layer_structure(make):
+@pytest.mark.parametrize(
+    ("make", "outside_nodes", "layer_cells"),
+    [
+        # Each square corner: one copy per side + a bisector copy; 4 quads x 2 + 4 corner fans x 2.
+        (square_with_centre, 12, 16),
+        # Each cube corner: 3 face copies, 3 edge bisectors, 1 apex; 12 facet prisms x 3 tets,
+        # 12 crease edges x 2 wedges x 3 tets, 8 corners x 6 cone tets.
+        (cube, 8 * 7, 36 + 72 + 48),
+        (lambda: Mesh([[0.0], [1.0], [2.0]], [[0, 1], [1, 2]]), 2, 2),
+    ],
+)
+def test_extra_layer_structure(make, outside_nodes, layer_cells):
     mesh = make()
     ext = with_extra_layer(mesh)
     big = ext.mesh
@@ -239,17 +250,50 @@ def test_extra_layer_structure(make):
     np.testing.assert_array_equal(big.nodes[: mesh.n_nodes], mesh.nodes)
     np.testing.assert_array_equal(big.cells[: mesh.n_cells], mesh.cells)
     assert ext.n_physical_nodes == mesh.n_nodes and ext.n_physical_cells == mesh.n_cells
-    n_boundary = int(mesh.boundary_node_mask.sum())
-    assert big.n_nodes == mesh.n_nodes + n_boundary
-    assert big.n_cells == mesh.n_cells + mesh.dim * len(mesh.boundary_facets)
+    assert int(ext.node_outside.sum()) == outside_nodes and int(ext.cell_outside.sum()) == layer_cells
     # Every physical boundary node gains a neighbour outside; interior nodes gain nothing.
     adjacency = big.adjacency().tocsr()
     outside_neighbours = adjacency[: mesh.n_nodes][:, ext.node_outside].sum(axis=1).A1
     np.testing.assert_array_equal(outside_neighbours > 0, mesh.boundary_node_mask)
-    # The old boundary is now interior: the new boundary consists of outside nodes only.
+    # Conforming and gap-free: the new boundary consists of outside nodes only (a gap or a
+    # quad cut two ways would leave facets with physical nodes on the boundary).
     assert ext.node_outside[big.boundary_facets].all()
-    # Layer cells lie outside: each touches the physical domain only on its boundary.
     np.testing.assert_allclose(big.cell_measures[~ext.cell_outside].sum(), mesh.cell_measures.sum())
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: shapes.rectangle(1.0, 0.7, 0.1),
+        lambda: shapes.polygon([[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]], size=0.2),
+        lambda: shapes.glyph("B", 0.04),
+        lambda: shapes.box((1.0, 0.8, 0.6), 0.2),
+        lambda: shapes.sphere(1.0, 0.3),
+    ],
+)
+def test_extra_layer_on_shapes_is_conforming(make):
+    mesh = make()
+    ext = with_extra_layer(mesh)
+    assert ext.node_outside[ext.mesh.boundary_facets].all()
+    assert ext.mesh.cell_quality[ext.cell_outside].min() > 0.1
+    assert ext.node_outside.sum() >= mesh.boundary_node_mask.sum()  # at least one copy per boundary node
+
+
+def test_prism_split_cuts_shared_quads_alike():
+    from datagen.layer import split_prisms
+
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        ids = rng.permutation(9)  # two prisms sharing the quad (1, 2, 5, 4) of the first
+        first = ids[[0, 1, 2, 3, 4, 5]]
+        second = ids[[1, 2, 6, 4, 5, 7]]
+        quad = set(ids[[1, 2, 4, 5]])
+        cut = []
+        for prism in (first, second):
+            faces = {frozenset(f) for tet in split_prisms(prism[None]) for f in
+                     (tet[[0, 1, 2]], tet[[0, 1, 3]], tet[[0, 2, 3]], tet[[1, 2, 3]])}
+            cut.append({f for f in faces if f <= quad})
+        assert cut[0] == cut[1] and len(cut[0]) == 2
 
 
 def test_extra_layer_outside_points_leave_the_domain():
