@@ -161,7 +161,7 @@ def test_sampled_min_ave_is_close_to_the_exact_median(monkeypatch):
     labels = mesh.component_labels
     for seed in seeds:
         best = exact[labels == labels[seed]].min()
-        assert exact[seed] <= 1.02 * best
+        assert exact[seed] <= 1.05 * best  # documented worst case: 3.4%; a random node is ~35% off on a disk
 
 
 def test_bfs_and_distance_sums_match_scipy():
@@ -231,15 +231,21 @@ def test_select_picks_level_nodes_from_the_finest_level():
     ({"seeding": "center"}, "seeding must be one of"),
     ({"min_nodes": 0}, "min_nodes must be"),
     ({"seed": -1}, "seed must be"),
-    ({"positions": np.zeros((5, 2))}, r"positions must have shape \(N, d\)"),
-    ({"positions": np.zeros(10)}, r"positions must have shape \(N, d\)"),
-    ({"positions": np.full((60, 2), np.nan)}, "NaN"),
 ])
 def test_bad_arguments_raise_one_clear_error(kwargs, message):
-    mesh = shape_mesh("rectangle", 0.14)
-    assert mesh.n_nodes == 60
     with pytest.raises(ValueError, match=message):
-        bistride_levels(mesh, **kwargs)
+        bistride_levels(shape_mesh("rectangle", 0.14), **kwargs)
+
+
+@pytest.mark.parametrize(("make_positions", "message"), [
+    (lambda n: np.zeros((5, 2)), r"positions must have shape \(N, d\)"),
+    (lambda n: np.zeros(n), r"positions must have shape \(N, d\)"),
+    (lambda n: np.full((n, 2), np.nan), "NaN"),
+])
+def test_bad_positions_raise_one_clear_error(make_positions, message):
+    mesh = shape_mesh("rectangle", 0.14)
+    with pytest.raises(ValueError, match=message):
+        bistride_levels(mesh, make_positions(mesh.n_nodes))
 
 
 def test_bad_edges_raise_one_clear_error():

@@ -33,6 +33,12 @@ def _pair_keys(pairs: np.ndarray, n: int) -> np.ndarray:
     return np.minimum(pairs[:, 0], pairs[:, 1]) * n + np.maximum(pairs[:, 0], pairs[:, 1])
 
 
+def _contains(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """(len(keys),) bool: which keys occur in the sorted array (binary search, no hashing)."""
+    where = np.minimum(np.searchsorted(sorted_keys, keys), max(sorted_keys.size - 1, 0))
+    return (sorted_keys[where] == keys) if sorted_keys.size else np.zeros(keys.size, dtype=bool)
+
+
 def _checked_contact_inputs(positions, body_id, radius, exclude) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     positions = np.asarray(positions, dtype=np.float64)
     if positions.ndim != 2 or not np.isfinite(positions).all():
@@ -52,7 +58,7 @@ def _checked_contact_inputs(positions, body_id, radius, exclude) -> tuple[np.nda
 
 def contact_edges(positions, body_id, radius: float, exclude=None, *,
                   self_contact: bool = True) -> np.ndarray:
-    """Proximity edges between nodes closer than ``radius`` that are not mesh neighbours.
+    """Proximity edges between nodes within ``radius`` (distance <= radius), not mesh neighbours.
 
     positions: (N, d) world positions of this frame; body_id: (N,) int body/obstacle of each
     node; exclude: (E, 2) node pairs never joined (normally ``mesh.edges``); self_contact:
@@ -66,7 +72,7 @@ def contact_edges(positions, body_id, radius: float, exclude=None, *,
     pairs = cKDTree(positions).query_pairs(float(radius), output_type="ndarray").astype(np.int64)
     same_body = body_id[pairs[:, 0]] == body_id[pairs[:, 1]]
     if self_contact:
-        excluded = np.isin(_pair_keys(pairs, n), _pair_keys(exclude, n))
+        excluded = _contains(np.sort(_pair_keys(exclude, n)), _pair_keys(pairs, n))
         keep = ~(same_body & excluded)
     else:
         keep = ~same_body

@@ -18,7 +18,7 @@
     the best estimates are tried, which bounds the cost on the dense coarse levels).
     ``benchmarks/min_ave_accuracy.py`` compares it with the exact median on every component
     of 0.5k-10k nodes of levels 0-2 of gmsh disk, annulus, L-shape, glyph, box and sphere
-    meshes (72 searches, 89 BFS each on average): the exact median in 61, mean excess in
+    meshes (72 searches, 72 BFS each on average): the exact median in 61, mean excess in
     mean distance 0.14%, worst 3.4% (the glyph 'B' with its holes, where the descent can
     settle in a neighbouring basin).
 

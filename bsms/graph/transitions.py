@@ -32,12 +32,12 @@ disk r=1, h=0.03          4177  level 2       0.0418      0.0451
 glyph 'BSMS', h=0.02      2818  level 1       0.0152      0.0208
 glyph 'BSMS', h=0.02      2818  level 2       0.0389      0.0447
 annulus 0.4-1, h=0.03     3599  level 1       0.0187      0.0243
-box 1^3, h=0.06           4641  level 1       0.0385      0.0404
-sphere r=1, h=0.12        2397  level 1       0.1053      0.1124
+box 1^3, h=0.06           9028  level 1       0.0285      0.0300
+sphere r=1, h=0.12        4719  level 1       0.0873      0.0913
 =======================  =====  ==========  =========  ============
 
 With its own value a kept node's coarse value stays centred on it; without, it averages the
-ring around it and the round trip blurs more (5-30% larger error through one level).
+ring around it and the round trip blurs more (4-37% larger error through one level).
 """
 
 from __future__ import annotations

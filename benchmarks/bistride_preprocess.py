@@ -1,0 +1,213 @@
+"""Wall time of ``bistride_levels`` next to a straightforward reference implementation.
+
+Meshes: gmsh disks (2D, triangles) and boxes (3D, tetrahedra) of about 1k, 10k, 50k and 200k
+nodes, meshed once and cached under ``.cache/benchmarks/``. For each mesh and seeding it
+times ``bistride_levels(mesh, levels=7, seeding=...)`` -- the mesh and 6 coarse levels, with
+transitions -- as the best of ``--repeats`` runs, each on a fresh Mesh object. In the same
+process it runs the reference below (once) where it can: plain Python BFS with a list as
+queue, two-hop sets for coarse edges, loops for the transition weights, and for MinAve a
+dense all-pairs BFS table. Both must give the same levels (kept nodes and edges).
+
+Run: python benchmarks/bistride_preprocess.py [--sizes 1k 10k 50k 200k] [--dims 2 3]
+The table is printed and written to ``runs/benchmarks/bistride_preprocess.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bsms.graph import SEEDINGS, bistride_levels
+from datagen import shapes
+from datagen.mesh import Mesh
+
+LEVELS = 7  # the mesh and 6 coarse levels
+SIZES = {"1k": 1_000, "10k": 10_000, "50k": 50_000, "200k": 200_000}
+TARGETS = {(2, "50k", "close_center"): 0.2, (2, "50k", "min_ave"): 2.0, (2, "200k", "close_center"): 1.0}
+ORIGINAL = ("for scale, the original authors' implementation on this machine: 0.78 s for a 47k-node and "
+            "5.3 s for a 186k-node triangle mesh (6 levels, centre seeding)")
+REFERENCE_MIN_AVE_NODES = 2_000  # its dense all-pairs table is O(N^2) in time and memory
+REFERENCE_3D_NODES = 12_000  # 3D coarse levels get dense (mean degree ~1000): two-hop sets explode
+CACHE = Path(".cache/benchmarks")
+RESULTS = Path("runs/benchmarks/bistride_preprocess.md")
+
+
+# --------------------------------------------------------------------------- meshes
+def benchmark_mesh(dim: int, nodes: int) -> Mesh:
+    """A gmsh disk (2D) or unit box (3D) within 20% of ``nodes`` nodes, cached as npz."""
+    path = CACHE / f"{'disk' if dim == 2 else 'box'}_{nodes}.npz"
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as data:
+            return Mesh(data["nodes"], data["cells"])
+    size = 0.0137 * math.sqrt(19_657 / nodes) if dim == 2 else 0.03 * (30_932 / nodes) ** (1 / 3)
+    for _ in range(4):  # gmsh's node count is not smooth in the size: rescale until close
+        mesh = shapes.disk(1.0, size) if dim == 2 else shapes.box((1.0, 1.0, 1.0), size)
+        if abs(mesh.n_nodes / nodes - 1) < 0.2:
+            break
+        size *= (mesh.n_nodes / nodes) ** (1 / dim)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, nodes=mesh.nodes, cells=mesh.cells)
+    return mesh
+
+
+# --------------------------------------------------------------------------- reference
+def python_bfs(neighbours: list[list[int]], seed: int) -> dict[int, int]:
+    """Hop depth of every node reachable from ``seed``; the queue is a plain list."""
+    depth, queue, head = {seed: 0}, [seed], 0
+    while head < len(queue):
+        node = queue[head]
+        head += 1
+        for other in neighbours[node]:
+            if other not in depth:
+                depth[other] = depth[node] + 1
+                queue.append(other)
+    return depth
+
+
+def reference_components(neighbours: list[list[int]]) -> list[list[int]]:
+    seen, components = set(), []
+    for start in range(len(neighbours)):
+        if start not in seen:
+            members = sorted(python_bfs(neighbours, start))
+            seen.update(members)
+            components.append(members)
+    return components
+
+
+def reference_seed(members, positions, seeding, keys, distances) -> int:
+    """The seed of one component, ties to the lowest index (as bsms.graph.seeding)."""
+    if seeding == "close_center":
+        centroid = positions[members].mean(axis=0)
+        score = [float(np.linalg.norm(positions[m] - centroid)) for m in members]
+    elif seeding == "random":
+        score = [keys[m] for m in members]
+    else:
+        score = [int(distances[m, members].sum()) for m in members]
+    return members[min(range(len(members)), key=lambda k: (score[k], members[k]))]
+
+
+def reference_level(neighbours, positions, weights, seeding, keys, distances):
+    """One bi-stride level: kept nodes, coarse neighbour lists, down weights, coarse weights."""
+    kept = []
+    for members in reference_components(neighbours):
+        depth = python_bfs(neighbours, reference_seed(members, positions, seeding, keys, distances))
+        odd = [m for m in members if depth[m] % 2 == 1]
+        even = [m for m in members if depth[m] % 2 == 0]
+        kept += odd if 0 < len(odd) < len(even) else even
+    kept.sort()
+    index = {node: k for k, node in enumerate(kept)}
+    coarse = []
+    for node in kept:
+        reach = {node, *neighbours[node]}
+        for middle in neighbours[node]:
+            reach.update(neighbours[middle])
+        coarse.append(sorted(index[other] for other in reach if other in index and other != node))
+    down, coarse_weights = [], []
+    for node in kept:
+        senders = [node, *neighbours[node]]
+        shares = [weights[s] / (len(neighbours[s]) + 1) for s in senders]
+        coarse_weights.append(sum(shares))
+        down.append({s: share / coarse_weights[-1] for s, share in zip(senders, shares, strict=True)})
+    return kept, coarse, down, coarse_weights
+
+
+def reference_levels(mesh: Mesh, seeding: str, seed: int = 0) -> list[tuple[list[int], list[list[int]]]]:
+    """All levels by the reference: (kept, coarse neighbour lists) per coarse level."""
+    neighbours = [[] for _ in range(mesh.n_nodes)]
+    for i, j in mesh.edges.tolist():
+        neighbours[i].append(j)
+        neighbours[j].append(i)
+    positions, weights, out = mesh.nodes, [1.0] * mesh.n_nodes, []
+    for depth in range(1, LEVELS):
+        n = len(neighbours)
+        keys = np.random.default_rng([seed, depth]).random(n).tolist() if seeding == "random" else None
+        distances = None
+        if seeding == "min_ave":  # dense all-pairs BFS table
+            distances = np.zeros((n, n), dtype=np.int32)
+            for source in range(n):
+                for node, hops in python_bfs(neighbours, source).items():
+                    distances[source, node] = hops
+        level = reference_level(neighbours, positions, weights, seeding, keys, distances)
+        kept, neighbours, _, weights = level
+        positions = positions[kept]
+        out.append((kept, neighbours))
+    return out
+
+
+def same_levels(hierarchy, reference) -> bool:
+    for level, (kept, neighbours) in zip(hierarchy.levels[1:], reference, strict=True):
+        rows = np.repeat(np.arange(len(neighbours)), [len(n) for n in neighbours])
+        edges = np.stack([rows, np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours])])
+        if level.kept.tolist() != kept or not np.array_equal(level.edge_index, edges):
+            return False
+    return True
+
+
+# --------------------------------------------------------------------------- timing
+def best_time(mesh: Mesh, seeding: str, repeats: int):
+    times, hierarchy = [], None
+    for _ in range(repeats):
+        fresh = Mesh(mesh.nodes, mesh.cells)
+        start = time.perf_counter()
+        hierarchy = bistride_levels(fresh, levels=LEVELS, seeding=seeding)
+        times.append(time.perf_counter() - start)
+    return min(times), hierarchy
+
+
+def reference_fits(dim: int, n_nodes: int, seeding: str, limit: int) -> bool:
+    if seeding == "min_ave":
+        limit = min(limit, REFERENCE_MIN_AVE_NODES)
+    elif dim == 3:
+        limit = min(limit, REFERENCE_3D_NODES)
+    return n_nodes <= limit
+
+
+def run_case(dim, name, mesh, seeding, args) -> str:
+    fast, hierarchy = best_time(mesh, seeding, args.repeats)
+    target = TARGETS.get((dim, name, seeding))
+    verdict = "" if target is None else f"{'met' if fast < target else 'MISSED'} (< {target:g} s)"
+    reference = speedup = match = "-"
+    if reference_fits(dim, mesh.n_nodes, seeding, args.reference_max_nodes):
+        start = time.perf_counter()
+        levels = reference_levels(mesh, seeding)
+        elapsed = time.perf_counter() - start
+        reference, speedup = f"{elapsed:.3f}", f"{elapsed / fast:.0f}x"
+        match = "yes" if same_levels(hierarchy, levels) else "NO"
+    counts = "/".join(str(c) for c in hierarchy.node_counts)
+    return (f"| {dim}D | {name} | {mesh.n_nodes} | {seeding} | {fast:.3f} | {reference} | {speedup} | "
+            f"{match} | {verdict} | {counts} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
+    parser.add_argument("--dims", nargs="+", type=int, default=[2, 3], choices=[2, 3])
+    parser.add_argument("--seedings", nargs="+", default=list(SEEDINGS), choices=list(SEEDINGS))
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--reference-max-nodes", type=int, default=50_000,
+                        help="largest mesh the reference runs on (also at most 2k for MinAve, 12k in 3D)")
+    args = parser.parse_args()
+    machine = platform.processor() or platform.machine()
+    lines = [f"bistride_levels, levels={LEVELS}, best of {args.repeats}; {machine}",
+             ORIGINAL, "",
+             "| dim | size | nodes | seeding | bsms [s] | reference [s] | speed-up | same levels | target "
+             "| nodes per level |", "|---|---|---|---|---|---|---|---|---|---|"]
+    print("\n".join(lines), flush=True)
+    for dim in args.dims:
+        for name in args.sizes:
+            mesh = benchmark_mesh(dim, SIZES[name])
+            for seeding in args.seedings:
+                lines.append(run_case(dim, name, mesh, seeding, args))
+                print(lines[-1], flush=True)
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text("\n".join(lines) + "\n")
+    print(f"\nwritten to {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()

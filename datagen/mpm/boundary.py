@@ -1,0 +1,194 @@
+"""Boundary conditions on background nodes, applied to the updated nodal velocities.
+
+Walls lie on the conforming boundary of the background mesh (its outward normals) and act
+on the boundary nodes and on their copies in the extra layer; on a regular grid they act
+on the nodes at or beyond the faces of the grid's box. Kinds:
+
+- ``sticky``: v = 0.
+- ``slip``: the normal component is removed, v <- v - (v.n) n.
+- ``separating``: only motion into the wall (v.n > 0 with n outward) is stopped, and the
+  tangential velocity is reduced by Coulomb friction mu (v.n), down to zero.
+
+Clamps (Dirichlet sets) hold every node inside a region at rest, e.g. a beam's fixed end.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..mesh import ExtendedMesh, Mesh
+from .kernels import Grid
+
+__all__ = [
+    "Sticky", "Slip", "SeparatingSlip", "Wall", "Clamp", "WALL_KINDS",
+    "mesh_conditions", "grid_conditions", "apply_conditions",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class Sticky:
+    """Nodes held at rest. nodes: (n,) int64."""
+
+    nodes: torch.Tensor
+
+    def apply(self, v: torch.Tensor) -> torch.Tensor:
+        """v: (d, N) nodal velocities by axis, modified in place and returned."""
+        v[:, self.nodes] = 0.0
+        return v
+
+
+@dataclass(frozen=True, eq=False)
+class Slip:
+    """Nodes that may only move tangentially. nodes: (n,), normals: (d, n) unit outward."""
+
+    nodes: torch.Tensor
+    normals: torch.Tensor
+
+    def apply(self, v: torch.Tensor) -> torch.Tensor:
+        vi = v[:, self.nodes]
+        v[:, self.nodes] = vi - (vi * self.normals).sum(0) * self.normals
+        return v
+
+
+@dataclass(frozen=True, eq=False)
+class SeparatingSlip:
+    """Nodes that may leave the wall freely but not enter it, with Coulomb friction."""
+
+    nodes: torch.Tensor
+    normals: torch.Tensor
+    friction: float = 0.0
+
+    def apply(self, v: torch.Tensor) -> torch.Tensor:
+        vi = v[:, self.nodes]
+        vn = (vi * self.normals).sum(0)
+        tangential = vi - vn * self.normals
+        speed = tangential.norm(dim=0)
+        scale = torch.clamp(1.0 - self.friction * vn / torch.clamp(speed, min=1e-300), min=0.0)
+        v[:, self.nodes] = torch.where(vn > 0, scale * tangential, vi)
+        return v
+
+
+WALL_KINDS = {"sticky", "slip", "separating"}
+
+
+@dataclass(frozen=True)
+class Wall:
+    """A wall on the part of the domain boundary picked by ``where``.
+
+    where(points (n, d), normals (n, d)) -> (n,) bool, given boundary facet centroids and
+    outward normals (mesh) or points on the box faces and their normals (grid).
+    """
+
+    kind: str
+    where: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    friction: float = 0.0
+
+    def __post_init__(self):
+        if self.kind not in WALL_KINDS:
+            raise ValueError(f"wall kind must be one of {sorted(WALL_KINDS)}, got {self.kind!r}")
+
+
+@dataclass(frozen=True)
+class Clamp:
+    """Every background node with ``where(points (n, d)) -> (n,) bool`` true is held at rest."""
+
+    where: Callable[[np.ndarray], np.ndarray]
+
+
+def _condition(kind: str, nodes: np.ndarray, normals: np.ndarray, friction: float, device, dtype):
+    nodes_t = torch.as_tensor(nodes, dtype=torch.int64, device=device)
+    normals_t = torch.as_tensor(np.ascontiguousarray(np.asarray(normals).T), dtype=dtype, device=device)
+    if kind == "sticky":
+        return Sticky(nodes_t)
+    if kind == "slip":
+        return Slip(nodes_t, normals_t)
+    return SeparatingSlip(nodes_t, normals_t, float(friction))
+
+
+def _wall_nodes(domain: Mesh, chosen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) mask of the physical nodes on the chosen facets and their (N, d) summed outward normals
+    (facet-measure weighted; zero off the wall)."""
+    facets = domain.boundary_facets[chosen]
+    weighted = domain.boundary_normals[chosen] * domain.boundary_facet_measures[chosen, None]
+    acc = np.zeros_like(domain.nodes)
+    for j in range(facets.shape[1]):
+        np.add.at(acc, facets[:, j], weighted)
+    on_wall = np.zeros(domain.n_nodes, dtype=bool)
+    on_wall[facets.ravel()] = True
+    return on_wall, acc
+
+
+def _extend_to_layer(extended: ExtendedMesh, on_wall: np.ndarray, acc: np.ndarray):
+    """Wall membership and normals of every node of the extended mesh.
+
+    A node of the extra layer belongs to a wall when it shares an edge with a physical node
+    of that wall, and takes the mean of their normals; this needs nothing of how the layer was
+    built. (At a corner of two walls, layer nodes next to the corner node get both.)
+    """
+    n = on_wall.size
+    adj = extended.mesh.adjacency()
+    to_physical = adj[n:, :n]
+    member = np.concatenate([on_wall, (to_physical @ on_wall.astype(float)) > 0])
+    normals = np.concatenate([acc, to_physical @ acc])
+    return member, normals
+
+
+def mesh_conditions(domain: Mesh, extended: ExtendedMesh | None, walls, clamps, *,
+                    device="cpu", dtype=torch.float64) -> list:
+    """Conditions on the background nodes of ``domain`` (+ its extra layer, if given).
+
+    ``extended`` must number the physical nodes first, as ``with_extra_layer`` does.
+    """
+    centroids = domain.nodes[domain.boundary_facets].mean(axis=1)
+    whole = extended.mesh if extended is not None else domain
+    out = []
+    for wall in walls:
+        chosen = np.asarray(wall.where(centroids, domain.boundary_normals), dtype=bool)
+        member, acc = _wall_nodes(domain, chosen)
+        if extended is not None:
+            member, acc = _extend_to_layer(extended, member, acc)
+        nodes = np.flatnonzero(member)
+        normals = acc[nodes] / np.linalg.norm(acc[nodes], axis=1, keepdims=True)
+        out.append(_condition(wall.kind, nodes, normals, wall.friction, device, dtype))
+    for clamp in clamps:
+        nodes = np.flatnonzero(np.asarray(clamp.where(whole.nodes), dtype=bool))
+        out.append(Sticky(torch.as_tensor(nodes, dtype=torch.int64, device=device)))
+    return out
+
+
+def grid_conditions(grid: Grid, lower, upper, walls, clamps, *, device="cpu", dtype=torch.float64) -> list:
+    """Conditions on a grid covering the box [lower, upper]: wall nodes are those on or beyond a face."""
+    nodes = grid.nodes()
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    tol = 1e-9 * grid.spacing
+    faces = []  # (node ids, normal) per box face
+    for axis in range(grid.dim):
+        low, high = nodes[:, axis] <= lower[axis] + tol, nodes[:, axis] >= upper[axis] - tol
+        for sign, beyond in ((-1.0, low), (1.0, high)):
+            normal = np.zeros(grid.dim)
+            normal[axis] = sign
+            faces.append((np.flatnonzero(beyond), normal))
+    out = []
+    for wall in walls:
+        for ids, normal in faces:
+            on_face = np.clip(nodes[ids], lower, upper)
+            normals = np.broadcast_to(normal, on_face.shape)
+            chosen = ids[np.asarray(wall.where(on_face, normals), dtype=bool)]
+            if chosen.size:
+                chosen_normals = normals[: chosen.size]
+                out.append(_condition(wall.kind, chosen, chosen_normals, wall.friction, device, dtype))
+    for clamp in clamps:
+        ids = np.flatnonzero(np.asarray(clamp.where(nodes), dtype=bool))
+        out.append(Sticky(torch.as_tensor(ids, dtype=torch.int64, device=device)))
+    return out
+
+
+def apply_conditions(v: torch.Tensor, conditions) -> torch.Tensor:
+    """Apply every condition in order to nodal velocities ``v: (d, N)`` (modified in place)."""
+    for condition in conditions:
+        v = condition.apply(v)
+    return v

@@ -1,0 +1,141 @@
+"""Elastic constitutive models, vectorised over particles.
+
+Each material gives, for deformation gradients ``F: (P, d, d)``, the Kirchhoff stress
+``tau = P F^T = J sigma`` (what the nodal force needs: f_i = -sum_p V_p^0 tau_p grad w_ip,
+UMLS eq. 10 with V_p = J V_p^0), the first Piola-Kirchhoff stress ``P`` and the strain energy
+density ``psi`` per unit reference volume. Lamé parameters follow from (E, nu) with the 3D
+formulas in every dimension (plane strain in 2D; in 1D exact only for nu = 0).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from . import linalg
+
+__all__ = ["Material", "LinearElastic", "NeoHookean", "FixedCorotated", "MATERIALS", "rotation_part"]
+
+_POLAR_ITERATIONS = 12
+
+
+@dataclass(frozen=True)
+class Material:
+    """Base: Young's modulus E, Poisson ratio nu, rest density."""
+
+    E: float
+    nu: float
+    density: float
+
+    def __post_init__(self):
+        if not (self.E > 0 and -1.0 < self.nu < 0.5 and self.density > 0):
+            raise ValueError(
+                f"{type(self).__name__} needs E > 0, -1 < nu < 0.5 and density > 0; "
+                f"got E={self.E}, nu={self.nu}, density={self.density}"
+            )
+
+    @property
+    def mu(self) -> float:
+        return self.E / (2.0 * (1.0 + self.nu))
+
+    @property
+    def lam(self) -> float:
+        return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+
+    @property
+    def wave_speed(self) -> float:
+        """Dilatational (P-wave) speed sqrt((lambda + 2 mu) / rho), for the CFL condition."""
+        return math.sqrt((self.lam + 2.0 * self.mu) / self.density)
+
+    def kirchhoff(self, F: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def energy_density(self, F: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def first_piola(self, F: torch.Tensor) -> torch.Tensor:
+        """P = tau F^-T."""
+        return self.kirchhoff(F) @ linalg.inv_transpose(F)
+
+
+def _trace(a: torch.Tensor) -> torch.Tensor:
+    return a.diagonal(dim1=-2, dim2=-1).sum(-1)
+
+
+class LinearElastic(Material):
+    """Small-strain elasticity: psi = mu eps:eps + lambda/2 tr(eps)^2 with eps = sym(F) - I.
+
+    P = dpsi/dF = 2 mu eps + lambda tr(eps) I and tau = P F^T. Not rotation invariant: use
+    it for small rotations (e.g. the vibrating bar, whose closed form it reproduces in 1D).
+    """
+
+    def _strain(self, F):
+        return 0.5 * (F + F.transpose(-1, -2)) - linalg.identity_like(F)
+
+    def first_piola(self, F):
+        eps = self._strain(F)
+        return 2.0 * self.mu * eps + self.lam * _trace(eps)[..., None, None] * linalg.identity_like(F)
+
+    def kirchhoff(self, F):
+        return self.first_piola(F) @ F.transpose(-1, -2)
+
+    def energy_density(self, F):
+        eps = self._strain(F)
+        return self.mu * (eps * eps).sum((-1, -2)) + 0.5 * self.lam * _trace(eps) ** 2
+
+
+class NeoHookean(Material):
+    """Compressible Neo-Hookean: psi = mu/2 (tr F^T F - d) - mu ln J + lambda/2 (ln J)^2.
+
+    tau = mu (F F^T - I) + lambda ln J I. A non-positive J gives NaN (the run then stops).
+    """
+
+    def kirchhoff(self, F):
+        log_j = torch.log(linalg.det(F))
+        eye = linalg.identity_like(F)
+        return self.mu * (F @ F.transpose(-1, -2) - eye) + self.lam * log_j[..., None, None] * eye
+
+    def energy_density(self, F):
+        log_j = torch.log(linalg.det(F))
+        d = F.shape[-1]
+        return 0.5 * self.mu * ((F * F).sum((-1, -2)) - d) - self.mu * log_j + 0.5 * self.lam * log_j**2
+
+
+def rotation_part(F: torch.Tensor) -> torch.Tensor:
+    """R of the polar decomposition F = R S (det F > 0): closed form in 1D/2D, scaled Newton in 3D."""
+    d = F.shape[-1]
+    if d == 1:
+        return torch.sign(F)
+    if d == 2:
+        c = F[..., 0, 0] + F[..., 1, 1]
+        s = F[..., 1, 0] - F[..., 0, 1]
+        norm = torch.sqrt(c * c + s * s)
+        c, s = c / norm, s / norm
+        return torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
+    R = F
+    for _ in range(_POLAR_ITERATIONS):  # R <- (g R + R^-T / g) / 2, g = |det R|^(-1/3)
+        g = linalg.det(R).abs().pow(-1.0 / 3.0)[..., None, None]
+        R = 0.5 * (g * R + linalg.inv_transpose(R) / g)
+    return R
+
+
+class FixedCorotated(Material):
+    """Fixed corotated: psi = mu |F - R|^2 + lambda/2 (J - 1)^2; tau = 2 mu (F - R) F^T + lambda (J-1) J I."""
+
+    def kirchhoff(self, F):
+        R = rotation_part(F)
+        J = linalg.det(F)
+        eye = linalg.identity_like(F)
+        volumetric = (self.lam * (J - 1.0) * J)[..., None, None] * eye
+        return 2.0 * self.mu * (F - R) @ F.transpose(-1, -2) + volumetric
+
+    def energy_density(self, F):
+        R = rotation_part(F)
+        J = linalg.det(F)
+        return self.mu * ((F - R) ** 2).sum((-1, -2)) + 0.5 * self.lam * (J - 1.0) ** 2
+
+
+MATERIALS = {"linear": LinearElastic, "neo_hookean": NeoHookean, "fixed_corotated": FixedCorotated}
+"""Config name -> material class."""

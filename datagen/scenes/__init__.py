@@ -1,0 +1,18 @@
+"""Scenes registered by name: each module has NAME, DEFAULTS, OUTPUT, SOLVER, params(), build()."""
+
+from __future__ import annotations
+
+from . import cantilever, colliding_disks, rotating_square, vibrating_bar
+from .base import ConfigError, Scene
+
+__all__ = ["SCENES", "get_scene", "ConfigError", "Scene"]
+
+SCENES = {module.NAME: module for module in (vibrating_bar, colliding_disks, cantilever, rotating_square)}
+
+
+def get_scene(name):
+    """The scene module registered as ``name``; ConfigError naming the choices otherwise."""
+    if not isinstance(name, str) or name not in SCENES:
+        raise ConfigError(f"unknown scene {name!r} (config key 'scene'); "
+                          f"choose one of {', '.join(sorted(SCENES))}")
+    return SCENES[name]

@@ -1,0 +1,145 @@
+"""What a scene builds, the error for bad scene parameters, and particle seeding helpers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..mesh import Mesh
+from ..mpm.boundary import Clamp, Wall
+from ..mpm.materials import MATERIALS, Material
+
+__all__ = [
+    "ConfigError", "Scene", "check_params", "make_material", "lattice", "lattice_mesh",
+    "chain_mesh", "line_mesh", "vertex_volumes", "nearest",
+]
+
+
+class ConfigError(ValueError):
+    """A configuration a user wrote that cannot be used; the message names the key."""
+
+
+@dataclass
+class Scene:
+    """A scene ready to simulate.
+
+    domain: the physical background mesh; walls act on its boundary. body: the tracked
+    material points (its vertices) and their connectivity, the graph a model learns.
+    x, v: (P, d) particles; volume: (P,) rest volumes; materials: (material, particle ids or
+    None = all); tracked: (N,) the particle index of each body vertex; walls, clamps:
+    boundary conditions; gravity: (d,); probes: name -> particle index whose stress is
+    recorded; grid_spacing: default spacing of the structured B-spline reference grid.
+    """
+
+    domain: Mesh
+    body: Mesh
+    x: np.ndarray
+    v: np.ndarray
+    volume: np.ndarray
+    materials: list[tuple[Material, np.ndarray | None]]
+    tracked: np.ndarray
+    walls: list[Wall] = field(default_factory=list)
+    clamps: list[Clamp] = field(default_factory=list)
+    gravity: np.ndarray | None = None
+    probes: dict[str, int] = field(default_factory=dict)
+    grid_spacing: float | None = None
+
+    @property
+    def dim(self) -> int:
+        return self.x.shape[1]
+
+    def density(self) -> np.ndarray:
+        """(P,) rest density of every particle."""
+        rho = np.zeros(len(self.x))
+        for material, ids in self.materials:
+            rho[slice(None) if ids is None else ids] = material.density
+        return rho
+
+
+def _type_name(value) -> str:
+    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
+            list: "a list", tuple: "a list"}.get(type(value), type(value).__name__)
+
+
+def check_params(scene: str, defaults: dict, given: dict, *, positive=(), choices=None) -> dict:
+    """Merge ``given`` over ``defaults``; unknown keys, wrong types, non-positive or
+    out-of-choice values raise ConfigError naming ``params.<key>``."""
+    if not isinstance(given, dict):
+        raise ConfigError(f"params must be a mapping of {scene} parameters, got {type(given).__name__}")
+    unknown = sorted(set(given) - set(defaults))
+    if unknown:
+        raise ConfigError(f"unknown parameter params.{unknown[0]} for scene {scene!r}; "
+                          f"known parameters: {', '.join(sorted(defaults))}")
+    out = dict(defaults)
+    for key, value in given.items():
+        default = defaults[key]
+        ok = (isinstance(value, bool) == isinstance(default, bool)) and (
+            isinstance(value, type(default)) or (isinstance(default, float) and isinstance(value, int))
+            or (isinstance(default, (list, tuple)) and isinstance(value, (list, tuple))))
+        if not ok:
+            raise ConfigError(f"params.{key} must be {_type_name(default)} (like {default!r}), got {value!r}")
+        out[key] = float(value) if isinstance(default, float) else value
+    for key in positive:
+        if not out[key] > 0:
+            raise ConfigError(f"params.{key} must be positive, got {out[key]!r}")
+    for key, allowed in (choices or {}).items():
+        if out[key] not in allowed:
+            raise ConfigError(f"params.{key} must be one of {sorted(allowed)}, got {out[key]!r}")
+    return out
+
+
+def make_material(name: str, E: float, nu: float, density: float) -> Material:
+    try:
+        return MATERIALS[name](E, nu, density)
+    except ValueError as exc:
+        raise ConfigError(f"bad material parameters: {exc}") from None
+
+
+def lattice(lower, upper, spacing: float) -> tuple[np.ndarray, tuple[int, ...], np.ndarray]:
+    """Cell-centred particles filling the box [lower, upper] with about ``spacing`` between them.
+
+    Returns points (P, d) in C order, the count per axis, and the exact spacing per axis.
+    """
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    counts = np.maximum(np.round((upper - lower) / spacing).astype(int), 1)
+    step = (upper - lower) / counts
+    axes = [lower[k] + (np.arange(n) + 0.5) * step[k] for k, n in enumerate(counts)]
+    points = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
+    return points, tuple(int(c) for c in counts), step
+
+
+def lattice_mesh(points: np.ndarray, counts: tuple[int, ...]) -> Mesh:
+    """Structured simplices over lattice points in C order: a chain in 1D, two triangles per quad in 2D."""
+    if len(counts) == 1:
+        return chain_mesh(points)
+    if len(counts) != 2:
+        raise ValueError("lattice_mesh supports 1D and 2D lattices")
+    nx, ny = counts
+    idx = np.arange(nx * ny).reshape(nx, ny)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    cells = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    return Mesh.from_arrays(points, cells, orient=True)
+
+
+def chain_mesh(points: np.ndarray) -> Mesh:
+    """1D segments joining consecutive points (sorted along the line)."""
+    n = len(points)
+    return Mesh(points, np.stack([np.arange(n - 1), np.arange(1, n)], axis=1))
+
+
+def line_mesh(start: float, stop: float, n_cells: int) -> Mesh:
+    """Uniform 1D mesh of ``n_cells`` segments on [start, stop]."""
+    return chain_mesh(np.linspace(start, stop, n_cells + 1)[:, None])
+
+
+def vertex_volumes(mesh: Mesh) -> np.ndarray:
+    """(N,) lumped volumes: each cell's measure shared equally among its d+1 vertices."""
+    vol = np.zeros(mesh.n_nodes)
+    np.add.at(vol, mesh.cells.ravel(), np.repeat(mesh.cell_measures / (mesh.dim + 1), mesh.dim + 1))
+    return vol
+
+
+def nearest(points: np.ndarray, target) -> int:
+    """Index of the point closest to ``target``."""
+    return int(np.argmin(np.linalg.norm(points - np.asarray(target, float), axis=1)))

@@ -1,0 +1,270 @@
+"""``simulate(config) -> Trajectory``: run a registered scene with the MPM solver.
+
+A config is a dict or a YAML file path::
+
+    scene: vibrating_bar          # a name from datagen.scenes.SCENES
+    params: {n_cells: 40}         # scene parameters (defaults: the paper's settings)
+    solver: {kernel: umls, transfer: flip, dt: null, cfl: 0.3, device: cpu}
+    output: {frames: 100, frame_interval: 0.1}
+
+Unknown keys and bad values raise :class:`ConfigError` naming the key.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .mesh import Mesh, with_extra_layer
+from .mpm import linalg
+from .mpm.boundary import grid_conditions, mesh_conditions
+from .mpm.kernels import Grid, MeshTables
+from .mpm.solver import KERNELS, TRANSFERS, Model, State, cfl_time_step, diagnostics, kirchhoff_stress, step
+from .scenes import ConfigError, Scene, get_scene
+
+__all__ = ["simulate", "Trajectory", "ConfigError", "resolve_config", "build_simulation", "Simulation"]
+
+TOP_LEVEL = {"scene", "params", "solver", "output", "seed"}
+SOLVER_DEFAULTS = {
+    "kernel": "umls", "transfer": "flip", "dt": None, "cfl": 0.3, "device": "cpu", "dtype": "float64",
+    "grid_spacing": None, "extra_layer": True, "layer_thickness": 1.0, "threads": None,
+}
+OUTPUT_DEFAULTS = {"frames": None, "frame_interval": None, "step_diagnostics": False}
+_DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
+@dataclass
+class Trajectory:
+    """A simulated run, sampled at frames.
+
+    mesh: the body mesh (rest positions; its vertices are the tracked material points).
+    positions, velocities: (T, N, d) of the tracked points. times: (T,). diagnostics: name ->
+    (T, ...) per frame (mass, momentum, angular_momentum, kinetic/elastic/gravitational
+    energy, center_of_mass, probe_stress (T, n_probes, d, d) Cauchy stress, and probe_names).
+    step_diagnostics: the same per solver step when output.step_diagnostics is set, else None.
+    wall_time: seconds spent stepping the solver. config: the full resolved config.
+    """
+
+    mesh: Mesh
+    positions: np.ndarray
+    velocities: np.ndarray
+    times: np.ndarray
+    diagnostics: dict
+    wall_time: float
+    config: dict
+    dt: float
+    substeps: int
+    n_particles: int
+    step_diagnostics: dict | None = None
+
+
+@dataclass
+class Simulation:
+    """A scene turned into a solver model and initial state, with the resolved config."""
+
+    scene: Scene
+    model: Model
+    state: State
+    config: dict
+    dt: float
+    substeps: int
+
+
+# ----------------------------------------------------------------------------- config
+def _load(config) -> dict:
+    if isinstance(config, (str, Path)):
+        import yaml
+
+        path = Path(config)
+        if not path.is_file():
+            raise ConfigError(f"config file {path} does not exist")
+        with open(path) as fh:
+            config = yaml.safe_load(fh)
+    if not isinstance(config, dict):
+        kind = type(config).__name__
+        raise ConfigError(f"a config must be a mapping (or a YAML file holding one), got {kind}")
+    return copy.deepcopy(config)
+
+
+def _section(config: dict, name: str, defaults: dict) -> dict:
+    given = config.get(name) or {}
+    if not isinstance(given, dict):
+        raise ConfigError(f"config key '{name}' must be a mapping, got {given!r}")
+    unknown = sorted(set(given) - set(defaults))
+    if unknown:
+        known = ", ".join(sorted(defaults))
+        raise ConfigError(f"unknown config key '{name}.{unknown[0]}'; known keys: {known}")
+    return {**defaults, **given}
+
+
+def _positive(value, key: str, *, optional=False, integer=False):
+    if value is None and optional:
+        return None
+    kind = int if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kind) or not math.isfinite(value) or value <= 0:
+        what = "integer" if integer else "number"
+        raise ConfigError(f"config key '{key}' must be a positive {what}, got {value!r}")
+    return value
+
+
+def _check_solver(s: dict) -> None:
+    for key, allowed in (("kernel", KERNELS), ("transfer", TRANSFERS), ("dtype", _DTYPES)):
+        if s[key] not in allowed:
+            choices = ", ".join(sorted(allowed))
+            raise ConfigError(f"config key 'solver.{key}' must be one of {choices}, got {s[key]!r}")
+    _positive(s["dt"], "solver.dt", optional=True)
+    _positive(s["grid_spacing"], "solver.grid_spacing", optional=True)
+    _positive(s["layer_thickness"], "solver.layer_thickness")
+    _positive(s["threads"], "solver.threads", optional=True, integer=True)
+    if not (_positive(s["cfl"], "solver.cfl") <= 1.0):
+        raise ConfigError(f"config key 'solver.cfl' must be in (0, 1], got {s['cfl']!r}")
+    if not isinstance(s["extra_layer"], bool):
+        raise ConfigError(f"config key 'solver.extra_layer' must be true or false, got {s['extra_layer']!r}")
+    try:
+        device = torch.device(s["device"])
+    except (RuntimeError, TypeError):
+        raise ConfigError(f"config key 'solver.device' is not a torch device: {s['device']!r}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("config key 'solver.device' asks for cuda, but no CUDA device is available; "
+                          "use 'cpu'")
+
+
+def resolve_config(config) -> dict:
+    """The full config: defaults filled in (scene defaults for params and output), all checked."""
+    config = _load(config)
+    unknown = sorted(set(config) - TOP_LEVEL)
+    if unknown:
+        raise ConfigError(f"unknown config key '{unknown[0]}'; known keys: {', '.join(sorted(TOP_LEVEL))}")
+    if "scene" not in config:
+        raise ConfigError("config key 'scene' is missing; name a scene, e.g. scene: vibrating_bar")
+    scene = get_scene(config["scene"])
+    params = scene.params(config.get("params") or {})
+    solver = _section(config, "solver", {**SOLVER_DEFAULTS, **scene.SOLVER})
+    _check_solver(solver)
+    output = _section(config, "output", {**OUTPUT_DEFAULTS, **scene.OUTPUT})
+    _positive(output["frames"], "output.frames", integer=True)
+    _positive(output["frame_interval"], "output.frame_interval")
+    if not isinstance(output["step_diagnostics"], bool):
+        raise ConfigError("config key 'output.step_diagnostics' must be true or false")
+    seed = config.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ConfigError(f"config key 'seed' must be an integer, got {seed!r}")
+    return {"scene": scene.NAME, "params": params, "solver": solver, "output": output, "seed": seed}
+
+
+# ----------------------------------------------------------------------------- model
+def _background(scene: Scene, solver: dict, device, dtype):
+    """(background, conditions, node positions, CFL length) for the chosen kernel."""
+    domain = scene.domain
+    if solver["kernel"] == "bspline":
+        spacing = solver["grid_spacing"] or scene.grid_spacing or domain.edge_length_stats.mean
+        lower, upper = domain.nodes.min(0), domain.nodes.max(0)
+        grid = Grid.covering(lower, upper, spacing)
+        conditions = grid_conditions(grid, lower, upper, scene.walls, scene.clamps,
+                                     device=device, dtype=dtype)
+        return grid, conditions, torch.tensor(grid.nodes(), dtype=dtype, device=device), spacing
+    extended = with_extra_layer(domain, solver["layer_thickness"]) if solver["extra_layer"] else None
+    tables = MeshTables.build(extended if extended is not None else domain, device=device, dtype=dtype)
+    conditions = mesh_conditions(domain, extended, scene.walls, scene.clamps, device=device, dtype=dtype)
+    return tables, conditions, tables.nodes, domain.edge_length_stats.min
+
+
+def build_model(scene: Scene, solver: dict) -> tuple[Model, State]:
+    device, dtype = torch.device(solver["device"]), _DTYPES[solver["dtype"]]
+    background, conditions, nodes, h_cfl = _background(scene, solver, device, dtype)
+    materials = tuple(
+        (m, None if ids is None else torch.as_tensor(ids, dtype=torch.int64, device=device))
+        for m, ids in scene.materials
+    )
+    gravity = np.zeros(scene.dim) if scene.gravity is None else scene.gravity
+    model = Model(
+        background=background, kernel=solver["kernel"], transfer=solver["transfer"], materials=materials,
+        conditions=tuple(conditions), gravity=torch.as_tensor(gravity, dtype=dtype, device=device),
+        node_positions=nodes, h_cfl=float(h_cfl),
+    )
+    state = State.at_rest_shape(scene.x, scene.v, scene.volume, scene.density(), device=device, dtype=dtype)
+    return model, state
+
+
+def build_simulation(config) -> Simulation:
+    """Resolve the config, build the scene, the solver model and the initial state."""
+    config = resolve_config(config)
+    scene_module = get_scene(config["scene"])
+    scene = scene_module.build(config["params"])
+    model, state = build_model(scene, config["solver"])
+    interval = config["output"]["frame_interval"]
+    dt_max = config["solver"]["dt"] or cfl_time_step(model, state, config["solver"]["cfl"])
+    substeps = max(1, math.ceil(interval / dt_max - 1e-9))
+    return Simulation(scene, model, state, config, interval / substeps, substeps)
+
+
+# ----------------------------------------------------------------------------- run
+def _frame_record(sim: Simulation, state: State) -> dict:
+    out = {k: v.detach().cpu().numpy() for k, v in diagnostics(sim.model, state).items()}
+    m = state.mass
+    out["center_of_mass"] = ((m[:, None] * state.x).sum(0) / m.sum()).cpu().numpy()
+    ids = torch.as_tensor(list(sim.scene.probes.values()), dtype=torch.int64, device=state.x.device)
+    if ids.numel():
+        F = state.F[ids]
+        tau = kirchhoff_stress(sim.model, state.F)[ids]
+        out["probe_stress"] = (tau / linalg.det(F)[:, None, None]).cpu().numpy()
+    return out
+
+
+def _stack(records: list[dict]) -> dict:
+    return {k: np.stack([r[k] for r in records]) for k in records[0]}
+
+
+def run(sim: Simulation) -> Trajectory:
+    """Step the simulation through its frames and collect the trajectory."""
+    frames = sim.config["output"]["frames"]
+    tracked = torch.as_tensor(sim.scene.tracked, dtype=torch.int64, device=sim.state.x.device)
+    state = sim.state
+    positions, velocities, times, records, per_step = [], [], [], [], []
+
+    def snapshot(s: State):
+        positions.append(s.x[tracked].cpu().numpy())
+        velocities.append(s.v[tracked].cpu().numpy())
+        times.append(s.time)
+        records.append(_frame_record(sim, s))
+
+    snapshot(state)
+    wall = 0.0
+    for _ in range(frames):
+        start = time.perf_counter()
+        for _ in range(sim.substeps):
+            state = step(sim.model, state, sim.dt)
+            if sim.config["output"]["step_diagnostics"]:
+                per_step.append({k: v.cpu().numpy() for k, v in diagnostics(sim.model, state).items()})
+        wall += time.perf_counter() - start
+        snapshot(state)
+    diag = _stack(records)
+    diag["probe_names"] = np.array(list(sim.scene.probes))
+    return Trajectory(
+        mesh=sim.scene.body, positions=np.stack(positions), velocities=np.stack(velocities),
+        times=np.array(times), diagnostics=diag, wall_time=wall, config=sim.config, dt=sim.dt,
+        substeps=sim.substeps, n_particles=len(sim.scene.x),
+        step_diagnostics=_stack(per_step) if per_step else None,
+    )
+
+
+def simulate(config) -> Trajectory:
+    """Run ``config`` (a dict or a YAML path) and return its :class:`Trajectory`.
+
+    solver.threads, if set, is the number of torch CPU threads for this run (restored after);
+    on small problems or a busy machine one thread is often fastest.
+    """
+    config = resolve_config(config)
+    threads, before = config["solver"]["threads"], torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        return run(build_simulation(config))
+    finally:
+        torch.set_num_threads(before)

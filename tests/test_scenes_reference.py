@@ -1,0 +1,60 @@
+"""UMLS-MPM against the structured quadratic B-spline reference (item 6): disks and cantilever.
+
+Small versions of UMLS §3.2-3.3; benchmarks/mpm_verification.py runs the larger ones.
+"""
+
+import numpy as np
+import pytest
+import torch
+
+import datagen
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+CFL = 0.6  # larger steps than the default 0.3 keep these runs short; both are stable at 0.6
+
+
+def _disks(solver: dict, params: dict | None = None):
+    return datagen.simulate({"scene": "colliding_disks", "params": params or {}, "solver": {**solver, "cfl": CFL},
+                             "output": {"frames": 30, "frame_interval": 0.1}})
+
+
+def test_colliding_disks_keep_momentum_and_recover_energy_like_the_reference():
+    umls = _disks({"kernel": "umls"})
+    ref = _disks({"kernel": "bspline", "grid_spacing": 0.0125}, {"body_size": 0.009})  # 2x finer, 4x particles
+    for traj in (umls, ref):
+        scale = float(traj.diagnostics["mass"][0]) * np.linalg.norm(traj.velocities[0], axis=1).max()
+        assert np.abs(traj.diagnostics["momentum"]).max() < 1e-10 * scale
+    recovered = {name: t.diagnostics["kinetic_energy"][-1] / t.diagnostics["kinetic_energy"][0]
+                 for name, t in (("umls", umls), ("ref", ref))}
+    during = umls.diagnostics["kinetic_energy"] / umls.diagnostics["kinetic_energy"][0]
+    assert during.min() < 0.3  # the disks really collided and stopped
+    assert recovered["ref"] > 0.5  # and the reference bounced back
+    assert abs(recovered["umls"] - recovered["ref"]) < 0.1 * recovered["ref"]
+
+
+def _tip_deflection(kernel: str, params: dict, solver: dict | None = None) -> float:
+    """Largest downward tip displacement over the first swing (t <= 0.8 s)."""
+    solver = {"kernel": kernel, "cfl": CFL, **(solver or {})}
+    traj = datagen.simulate({"scene": "cantilever", "params": params, "solver": solver,
+                             "output": {"frames": 80, "frame_interval": 0.01}})
+    tip = int(np.argmin(np.linalg.norm(traj.positions[0] - [10.0, 1.0], axis=1)))
+    return float(-(traj.positions[:, tip, 1] - traj.positions[0, tip, 1]).min())
+
+
+def test_cantilever_matches_the_reference_at_every_mesh_rotation():
+    # mesh 0.4 m (the paper's 0.5 m gives 5.5% against this reference; see the benchmark)
+    ref = _tip_deflection("bspline", {"particle_spacing": 0.125}, {"grid_spacing": 0.25})
+    assert 1.2 < ref < 1.6  # about twice the static Euler-Bernoulli deflection, 0.74 m
+    upright = _tip_deflection("umls", {"mesh_size": 0.4})
+    assert abs(upright - ref) < 0.05 * ref
+    for angle in (15.0, 30.0, 45.0):
+        rotated = _tip_deflection("umls", {"mesh_size": 0.4, "rotation": angle})
+        assert abs(rotated - upright) < 0.05 * upright
