@@ -244,7 +244,8 @@ class Mesh:
             [self._cells[:, [a, b]] for a in range(k) for b in range(a + 1, k)], axis=0
         )
         pairs.sort(axis=1)
-        keys = np.unique(pairs[:, 0] * self.n_nodes + pairs[:, 1])
+        keys = np.sort(pairs[:, 0] * self.n_nodes + pairs[:, 1])  # sort + drop repeats: np.unique is slower
+        keys = keys[np.r_[True, keys[1:] != keys[:-1]]]
         edges = np.stack([keys // self.n_nodes, keys % self.n_nodes], axis=1)
         edges.setflags(write=False)
         return edges
@@ -319,9 +320,14 @@ class Mesh:
         facets = self._cells[:, local].reshape(-1, d)  # (C*k, d), cell-major
         opposite = self._cells.reshape(-1)
         owner = np.repeat(np.arange(self.n_cells), k)
-        keys = np.sort(facets, axis=1)
-        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-        shared = counts[inverse.ravel()]
+        sorted_facets = np.sort(facets, axis=1)
+        order = np.lexsort(sorted_facets.T[::-1])  # equal facets become neighbours
+        ordered = sorted_facets[order]
+        run = np.r_[True, (ordered[1:] != ordered[:-1]).any(axis=1)]
+        run_id = np.cumsum(run) - 1
+        counts = np.bincount(run_id)
+        shared = np.empty(len(keys), dtype=np.int64)
+        shared[order] = counts[run_id]
         if (counts > 2).any():
             bad = np.unique(owner[shared > 2])
             raise MeshError(
