@@ -326,7 +326,7 @@ class Mesh:
         run = np.r_[True, (ordered[1:] != ordered[:-1]).any(axis=1)]
         run_id = np.cumsum(run) - 1
         counts = np.bincount(run_id)
-        shared = np.empty(len(keys), dtype=np.int64)
+        shared = np.empty(len(facets), dtype=np.int64)
         shared[order] = counts[run_id]
         if (counts > 2).any():
             bad = np.unique(owner[shared > 2])
