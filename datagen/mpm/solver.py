@@ -4,7 +4,7 @@
 One step: the kernel of every particle is computed by one call (:func:`compute_kernel`,
 whose result a caller may cache and pass back in), P2G scatters mass, momentum and internal
 force in one pass, nodal velocities are integrated and constrained, and G2P updates
-particle velocities (FLIP, PIC or APIC), positions and deformation gradients.
+particle velocities (FLIP, PIC, APIC or FLIP with MUSL), positions and deformation gradients.
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ class Model:
     """Everything that does not change during a run.
 
     background: MeshTables (mesh kernels) or Grid (bspline). kernel: 'umls' | 'linear' |
-    'bspline'. transfer: 'flip' | 'pic' | 'apic'. materials: (material, particle ids or None
+    'bspline'. transfer: 'flip' | 'pic' | 'apic' | 'musl' (FLIP with the modified
+    update-stress-last strain, for the linear hat). materials: (material, particle ids or None
     for all) pairs. conditions: boundary conditions applied in order. gravity: (d,).
     node_positions: (N, d). h_cfl: the length used by the CFL condition.
     """
