@@ -118,6 +118,9 @@ def _check_solver(s: dict) -> None:
         if s[key] not in allowed:
             choices = ", ".join(sorted(allowed))
             raise ConfigError(f"config key 'solver.{key}' must be one of {choices}, got {s[key]!r}")
+    if s["kernel"] == "linear" and s["transfer"] == "apic":
+        raise ConfigError("config key 'solver.transfer' cannot be 'apic' with kernel 'linear': the linear hat's "
+                          "APIC inertia D_p is singular at mesh nodes; use flip, pic or musl, or kernel umls")
     _positive(s["dt"], "solver.dt", optional=True)
     _positive(s["grid_spacing"], "solver.grid_spacing", optional=True)
     _positive(s["layer_thickness"], "solver.layer_thickness")
