@@ -10,22 +10,15 @@ every index field by the node count of the level it points into.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
 
 import numpy as np
 import torch
 from torch import Tensor
 from torch_geometric.data import Data
 
+from datagen.dataset import NodeType
+
 __all__ = ["NodeType", "N_NODE_TYPES", "MeshLevels", "LevelGraph", "frame_graph"]
-
-
-class NodeType(IntEnum):
-    """Role of a node in the learned graph."""
-
-    FREE = 0  # moved by the model
-    CLAMPED = 1  # moves as prescribed (e.g. a clamped beam end)
-    OBSTACLE = 2  # a node of a wall or container, moves as prescribed
 
 
 N_NODE_TYPES = len(NodeType)

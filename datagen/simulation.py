@@ -49,6 +49,11 @@ class Trajectory:
     energy, center_of_mass, probe_stress (T, n_probes, d, d) Cauchy stress, and probe_names).
     step_diagnostics: the same per solver step when output.step_diagnostics is set, else None.
     wall_time: seconds spent stepping the solver. config: the full resolved config.
+    frame_wall_times: (T,) solver seconds spent reaching each frame (0 for frame 0).
+    node_type: (N,) datagen.dataset.NodeType codes of the tracked points (None: all free).
+    body_id: (N,) body of each tracked point (None: one body). obstacle_nodes (M, d) and
+    obstacle_facets (F, d): wall/container geometry a model can see (None: none).
+    kernel_rebuilds: how many times kernels were computed (None: not counted).
     """
 
     mesh: Mesh
@@ -62,6 +67,12 @@ class Trajectory:
     substeps: int
     n_particles: int
     step_diagnostics: dict | None = None
+    frame_wall_times: np.ndarray | None = None
+    node_type: np.ndarray | None = None
+    body_id: np.ndarray | None = None
+    obstacle_nodes: np.ndarray | None = None
+    obstacle_facets: np.ndarray | None = None
+    kernel_rebuilds: int | None = None
 
 
 @dataclass
@@ -238,22 +249,24 @@ def run(sim: Simulation) -> Trajectory:
         records.append(_frame_record(sim, s))
 
     snapshot(state)
-    wall = 0.0
+    frame_wall = [0.0]
     for _ in range(frames):
         start = time.perf_counter()
         for _ in range(sim.substeps):
             state = step(sim.model, state, sim.dt)
             if sim.config["output"]["step_diagnostics"]:
                 per_step.append({k: v.cpu().numpy() for k, v in diagnostics(sim.model, state).items()})
-        wall += time.perf_counter() - start
+        frame_wall.append(time.perf_counter() - start)
         snapshot(state)
+    wall = float(sum(frame_wall))
     diag = _stack(records)
     diag["probe_names"] = np.array(list(sim.scene.probes))
     return Trajectory(
         mesh=sim.scene.body, positions=np.stack(positions), velocities=np.stack(velocities),
         times=np.array(times), diagnostics=diag, wall_time=wall, config=sim.config, dt=sim.dt,
         substeps=sim.substeps, n_particles=len(sim.scene.x),
-        step_diagnostics=_stack(per_step) if per_step else None,
+        step_diagnostics=_stack(per_step) if per_step else None, frame_wall_times=np.array(frame_wall),
+        kernel_rebuilds=sim.substeps * frames,  # every step computes its kernel (no reference caching yet)
     )
 
 

@@ -1,0 +1,188 @@
+"""Trajectory files: one HDF5 file per trajectory, versioned, written atomically, read with checks.
+
+Layout (format version 1)::
+
+    /                    attrs: format_version, scene, config (JSON), params (JSON), frame_dt,
+                                solver_dt, substeps, n_particles, wall_time, kernel_rebuilds
+    /mesh/nodes          (N, d) float64  rest positions of the tracked body vertices
+    /mesh/cells          (C, d+1) int64
+    /mesh/node_type      (N,) int8       NodeType codes
+    /mesh/body_id        (N,) int32
+    /obstacles/nodes     (M, d) float64  wall / container geometry (M may be 0)
+    /obstacles/facets    (F, d) int64    its segments (2D) or triangles (3D)
+    /frames/positions    (T, N, d) float64
+    /frames/velocities   (T, N, d) float64
+    /frames/times        (T,) float64
+    /frames/wall_time    (T,) float64    solver seconds spent reaching each frame (0 for frame 0)
+    /diagnostics/<name>  (T, ...)        per-frame solver diagnostics
+
+Files are written under a temporary name in the target folder and renamed when complete, so a
+crash never leaves a partial file under the final name. Object timestamps are off, so the same
+trajectory gives the same bytes apart from the timing fields (wall times).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from enum import IntEnum
+from pathlib import Path
+
+import numpy as np
+
+from datagen.mesh import Mesh, MeshError
+
+__all__ = ["FORMAT_VERSION", "NodeType", "DatasetError", "save", "load", "is_complete"]
+
+FORMAT_VERSION = 1
+TIMING_FIELDS = ("wall_time", "frames/wall_time")
+
+
+class NodeType(IntEnum):
+    """Role of a node in the learned graph."""
+
+    FREE = 0  # moved by the physics (and by the model)
+    CLAMPED = 1  # moves as prescribed (e.g. a clamped beam end)
+    OBSTACLE = 2  # a node of a wall or container, moves as prescribed
+
+
+class DatasetError(ValueError):
+    """A trajectory file or dataset folder that cannot be used; the message names the file."""
+
+
+def _json(value) -> str:
+    return json.dumps(value, sort_keys=True, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+
+
+def _put(group, name: str, array) -> None:
+    group.create_dataset(name, data=np.asarray(array), track_times=False)
+
+
+def save(path, trajectory) -> Path:
+    """Write ``trajectory`` (a :class:`datagen.Trajectory`) to ``path`` atomically; returns the path."""
+    import h5py
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    t = trajectory
+    n, d = t.mesh.nodes.shape
+    node_type = np.zeros(n, np.int8) if t.node_type is None else np.asarray(t.node_type, np.int8)
+    body_id = np.zeros(n, np.int32) if t.body_id is None else np.asarray(t.body_id, np.int32)
+    obstacle_nodes = np.zeros((0, d)) if t.obstacle_nodes is None else np.asarray(t.obstacle_nodes, float)
+    obstacle_facets = np.zeros((0, d), np.int64) if t.obstacle_facets is None else np.asarray(t.obstacle_facets)
+    frame_wall = np.zeros(len(t.times)) if t.frame_wall_times is None else np.asarray(t.frame_wall_times, float)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w", track_order=True) as f:
+            attrs = {
+                "format_version": FORMAT_VERSION, "scene": str(t.config.get("scene", "")),
+                "config": _json(t.config), "params": _json(t.config.get("params", {})),
+                "frame_dt": float(np.diff(t.times).mean()) if len(t.times) > 1 else 0.0,
+                "solver_dt": float(t.dt), "substeps": int(t.substeps), "n_particles": int(t.n_particles),
+                "wall_time": float(t.wall_time), "kernel_rebuilds": int(t.kernel_rebuilds or 0),
+            }
+            for key, value in attrs.items():
+                f.attrs[key] = value
+            mesh = f.create_group("mesh", track_order=True)
+            for name, array in (("nodes", t.mesh.nodes), ("cells", t.mesh.cells), ("node_type", node_type),
+                                ("body_id", body_id)):
+                _put(mesh, name, array)
+            obstacles = f.create_group("obstacles", track_order=True)
+            _put(obstacles, "nodes", obstacle_nodes)
+            _put(obstacles, "facets", obstacle_facets)
+            frames = f.create_group("frames", track_order=True)
+            for name, array in (("positions", t.positions), ("velocities", t.velocities), ("times", t.times),
+                                ("wall_time", frame_wall)):
+                _put(frames, name, array)
+            diagnostics = f.create_group("diagnostics", track_order=True)
+            for name, array in sorted(t.diagnostics.items()):
+                array = np.asarray(array)
+                _put(diagnostics, name, array.astype("S") if array.dtype.kind == "U" else array)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def is_complete(path) -> bool:
+    """True when ``path`` is a readable trajectory file of the current format."""
+    try:
+        load(path)
+    except DatasetError:
+        return False
+    return True
+
+
+_REQUIRED = {
+    "mesh/nodes": 2, "mesh/cells": 2, "mesh/node_type": 1, "mesh/body_id": 1, "obstacles/nodes": 2,
+    "obstacles/facets": 2, "frames/positions": 3, "frames/velocities": 3, "frames/times": 1, "frames/wall_time": 1,
+}
+
+
+def _checked_arrays(f, path: Path) -> dict:
+    version = f.attrs.get("format_version")
+    if version != FORMAT_VERSION:
+        raise DatasetError(f"trajectory file {path} has format version {version}, this reader reads "
+                           f"{FORMAT_VERSION}; regenerate it with python -m datagen")
+    arrays = {}
+    for name, ndim in _REQUIRED.items():
+        if name not in f:
+            raise DatasetError(f"trajectory file {path} lacks '{name}'; it is not a bsms trajectory or is damaged")
+        arrays[name] = f[name][()]
+        if arrays[name].ndim != ndim:
+            raise DatasetError(f"trajectory file {path}: '{name}' has {arrays[name].ndim} dimensions, expected {ndim}")
+    n, d = arrays["mesh/nodes"].shape
+    t = arrays["frames/times"].shape[0]
+    for name in ("frames/positions", "frames/velocities"):
+        if arrays[name].shape != (t, n, d):
+            raise DatasetError(f"trajectory file {path}: '{name}' has shape {arrays[name].shape}, expected "
+                               f"({t}, {n}, {d}) from its times and mesh")
+    for name in ("mesh/node_type", "mesh/body_id"):
+        if arrays[name].shape != (n,):
+            raise DatasetError(f"trajectory file {path}: '{name}' has shape {arrays[name].shape}, expected ({n},)")
+    if arrays["frames/wall_time"].shape != (t,):
+        raise DatasetError(f"trajectory file {path}: 'frames/wall_time' must have one entry per frame ({t})")
+    return arrays
+
+
+def load(path):
+    """Read a trajectory file into a :class:`datagen.Trajectory`, checking the schema.
+
+    Raises DatasetError naming the file for a missing, truncated or corrupt file, a different
+    format version, missing or inconsistent arrays, or an invalid body mesh.
+    """
+    import h5py
+
+    from datagen.simulation import Trajectory
+
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"trajectory file {path} does not exist")
+    try:
+        with h5py.File(path, "r") as f:
+            arrays = _checked_arrays(f, path)
+            attrs = dict(f.attrs)
+            diagnostics = {name: f["diagnostics"][name][()] for name in f.get("diagnostics", {})}
+    except DatasetError:
+        raise
+    except (OSError, KeyError, ValueError) as exc:
+        raise DatasetError(f"trajectory file {path} is truncated or corrupt ({exc}); delete it and "
+                           "regenerate it with python -m datagen") from None
+    try:
+        mesh = Mesh(arrays["mesh/nodes"], arrays["mesh/cells"])
+    except MeshError as exc:
+        raise DatasetError(f"trajectory file {path}: its body mesh is invalid: {exc}") from None
+    if "probe_names" in diagnostics:
+        diagnostics["probe_names"] = diagnostics["probe_names"].astype(str)
+    return Trajectory(
+        mesh=mesh, positions=arrays["frames/positions"], velocities=arrays["frames/velocities"],
+        times=arrays["frames/times"], diagnostics=diagnostics, wall_time=float(attrs["wall_time"]),
+        config=json.loads(attrs["config"]), dt=float(attrs["solver_dt"]), substeps=int(attrs["substeps"]),
+        n_particles=int(attrs["n_particles"]), frame_wall_times=arrays["frames/wall_time"],
+        node_type=arrays["mesh/node_type"].astype(np.int64), body_id=arrays["mesh/body_id"].astype(np.int64),
+        obstacle_nodes=arrays["obstacles/nodes"], obstacle_facets=arrays["obstacles/facets"],
+        kernel_rebuilds=int(attrs["kernel_rebuilds"]),
+    )
