@@ -2,19 +2,12 @@
 
 import numpy as np
 import pytest
-import torch
 import yaml
 
 import datagen
 from datagen.scenes import ConfigError, vibrating_bar
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 # ----------------------------------------------------------------------------- config

@@ -5,17 +5,10 @@ Small versions of UMLS §3.2-3.3; benchmarks/mpm_verification.py runs the larger
 
 import numpy as np
 import pytest
-import torch
 
 import datagen
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 CFL = 0.6  # larger steps than the default 0.3 keep these runs short; both are stable at 0.6

@@ -13,14 +13,7 @@ from datagen.mpm.materials import FixedCorotated, LinearElastic, NeoHookean, rot
 from datagen.mpm.solver import Model, SimulationError, State, cfl_time_step, diagnostics, step
 from datagen.scenes.base import lattice
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small problems run fastest (and most steadily on a shared machine) on one thread."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _random_F(n: int, d: int, seed: int = 0) -> torch.Tensor:
@@ -117,13 +110,17 @@ def _block_model_3d(transfer: str):
     return model, State.at_rest_shape(x, v, np.full(len(x), np.prod(step_)), 1.0)
 
 
-def test_three_dimensional_apic_conserves_both_momenta():
-    model, state = _block_model_3d("apic")
+def _advance(model, state, steps: int):
+    """Run ``steps`` CFL steps; returns (diagnostics before, after, final state, dt)."""
     dt = cfl_time_step(model, state, 0.3)
     start = diagnostics(model, state)
-    for _ in range(10):
+    for _ in range(steps):
         state = step(model, state, dt)
-    end = diagnostics(model, state)
+    return start, diagnostics(model, state), state, dt
+
+
+def test_three_dimensional_apic_conserves_both_momenta():
+    start, end, state, _ = _advance(*_block_model_3d("apic"), 10)
     scale = float(start["mass"]) * float(state.v.norm(dim=1).max())
     assert float((end["momentum"] - start["momentum"]).abs().max()) < 1e-12 * scale
     drift = (end["angular_momentum"] - start["angular_momentum"]).norm()
@@ -136,12 +133,7 @@ def test_three_dimensional_apic_conserves_both_momenta():
      if (k, t) != ("linear", "apic")],  # rejected by the config: see test_linear_apic_is_rejected
 )
 def test_linear_momentum_is_conserved_without_walls(kernel, transfer):
-    model, state = _block_model(kernel, transfer)
-    dt = cfl_time_step(model, state, 0.3)
-    start = diagnostics(model, state)
-    for _ in range(20):
-        state = step(model, state, dt)
-    end = diagnostics(model, state)
+    start, end, state, dt = _advance(*_block_model(kernel, transfer), 20)
     scale = float(start["mass"]) * float(state.v.norm(dim=1).max())
     assert float((end["momentum"] - start["momentum"]).abs().max()) < 1e-12 * scale
     assert float(end["mass"]) == float(start["mass"])
