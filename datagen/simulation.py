@@ -266,6 +266,8 @@ def run(sim: Simulation) -> Trajectory:
         times=np.array(times), diagnostics=diag, wall_time=wall, config=sim.config, dt=sim.dt,
         substeps=sim.substeps, n_particles=len(sim.scene.x),
         step_diagnostics=_stack(per_step) if per_step else None, frame_wall_times=np.array(frame_wall),
+        node_type=sim.scene.node_type, body_id=sim.scene.body_id, obstacle_nodes=sim.scene.obstacle_nodes,
+        obstacle_facets=sim.scene.obstacle_facets,
         kernel_rebuilds=sim.substeps * frames,  # every step computes its kernel (no reference caching yet)
     )
 

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-from . import cantilever, colliding_disks, rotating_square, vibrating_bar
+from . import cantilever, colliding_disks, disks, glyphs, rotating_square, vibrating_bar, wavy_channel
 from .base import ConfigError, Scene
 
 __all__ = ["SCENES", "get_scene", "ConfigError", "Scene"]
 
-SCENES = {module.NAME: module for module in (vibrating_bar, colliding_disks, cantilever, rotating_square)}
+SCENES = {
+    module.NAME: module
+    for module in (vibrating_bar, colliding_disks, cantilever, rotating_square, disks, wavy_channel, glyphs)
+}
 
 
 def get_scene(name):

@@ -12,7 +12,7 @@ from ..mpm.materials import MATERIALS, Material
 
 __all__ = [
     "ConfigError", "Scene", "check_params", "make_material", "lattice", "lattice_mesh",
-    "chain_mesh", "line_mesh", "vertex_volumes", "nearest",
+    "chain_mesh", "line_mesh", "vertex_volumes", "nearest", "merge_bodies", "outline",
 ]
 
 
@@ -30,6 +30,9 @@ class Scene:
     None = all); tracked: (N,) the particle index of each body vertex; walls, clamps:
     boundary conditions; gravity: (d,); probes: name -> particle index whose stress is
     recorded; grid_spacing: default spacing of the structured B-spline reference grid.
+    node_type: (N,) datagen.dataset.NodeType codes of the body vertices (None: all free);
+    body_id: (N,) body of each vertex (None: one body); obstacle_nodes (M, d) and
+    obstacle_facets (F, d): wall/container geometry a model can see (None: none).
     """
 
     domain: Mesh
@@ -44,6 +47,10 @@ class Scene:
     gravity: np.ndarray | None = None
     probes: dict[str, int] = field(default_factory=dict)
     grid_spacing: float | None = None
+    node_type: np.ndarray | None = None
+    body_id: np.ndarray | None = None
+    obstacle_nodes: np.ndarray | None = None
+    obstacle_facets: np.ndarray | None = None
 
     @property
     def dim(self) -> int:
@@ -143,3 +150,19 @@ def vertex_volumes(mesh: Mesh) -> np.ndarray:
 def nearest(points: np.ndarray, target) -> int:
     """Index of the point closest to ``target``."""
     return int(np.argmin(np.linalg.norm(points - np.asarray(target, float), axis=1)))
+
+
+def merge_bodies(meshes: list[Mesh]) -> tuple[Mesh, np.ndarray]:
+    """One mesh from several bodies, and (N,) the body id of each of its nodes."""
+    offsets = np.cumsum([0] + [m.n_nodes for m in meshes[:-1]])
+    nodes = np.concatenate([m.nodes for m in meshes])
+    cells = np.concatenate([m.cells + o for m, o in zip(meshes, offsets, strict=True)])
+    body_id = np.concatenate([np.full(m.n_nodes, k) for k, m in enumerate(meshes)])
+    return Mesh(nodes, cells), body_id
+
+
+def outline(domain: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The boundary of ``domain`` as obstacle geometry: nodes (M, d) and facets (F, d) into them."""
+    facets = domain.boundary_facets
+    used, inverse = np.unique(facets.ravel(), return_inverse=True)
+    return domain.nodes[used], inverse.reshape(facets.shape).astype(np.int64)

@@ -5,7 +5,9 @@ a uniform lattice. The background is a square large enough to hold the beam and 
 deflection at any rotation, rotated by ``rotation`` degrees about the beam's centre (UMLS
 Fig. 13) and cut by the wall x = 0, then triangulated (element size 0.5 m). The cut is a
 conforming boundary where the beam is clamped (a sticky wall), whatever the rotation; the
-rest of the boundary is a separating wall the beam never reaches.
+rest of the boundary is a separating wall the beam never reaches. The lattice column next to
+the wall is marked CLAMPED in the learned graph (it moves with the wall, up to the solver's
+small slack) and the wall is its obstacle geometry.
 """
 
 from __future__ import annotations
@@ -15,9 +17,10 @@ import math
 import numpy as np
 
 from .. import shapes
+from ..dataset import NodeType
 from ..mesh import Mesh
 from ..mpm.boundary import Wall
-from .base import Scene, check_params, lattice, lattice_mesh, make_material, nearest
+from .base import Scene, check_params, lattice, lattice_mesh, make_material, nearest, outline
 
 NAME = "cantilever"
 DEFAULTS = {
@@ -67,9 +70,21 @@ def build(p: dict) -> Scene:
         Wall("separating", lambda c, n: n[:, 0] > -0.999),
         Wall("sticky", lambda c, n: n[:, 0] <= -0.999),  # the cut x = 0 clamps the beam
     ]
+    domain = background(p)
+    clamp_nodes, clamp_facets = _clamp_wall(domain)
     return Scene(
-        domain=background(p), body=lattice_mesh(x, counts), x=x, v=np.zeros_like(x),
+        domain=domain, body=lattice_mesh(x, counts), x=x, v=np.zeros_like(x),
         volume=np.full(len(x), float(np.prod(step))), materials=[(material, None)],
         tracked=np.arange(len(x)), walls=walls, gravity=np.array([0.0, -p["gravity"]]),
         probes={"tip": nearest(x, [L, H / 2])}, grid_spacing=p["mesh_size"] / 2,
+        obstacle_nodes=clamp_nodes, obstacle_facets=clamp_facets,
+        node_type=np.where(x[:, 0] < step[0], NodeType.CLAMPED, NodeType.FREE).astype(np.int8),
     )
+
+
+def _clamp_wall(domain: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The clamping wall x = 0 as obstacle geometry: nodes (M, 2), segments (F, 2)."""
+    on_wall = domain.boundary_normals[:, 0] <= -0.999
+    nodes, facets = outline(domain)
+    used, inverse = np.unique(facets[on_wall].ravel(), return_inverse=True)
+    return nodes[used], inverse.reshape(-1, 2).astype(np.int64)

@@ -1,0 +1,65 @@
+"""An elastic body falling through a wavy channel (UMLS §3.4, eq. 36).
+
+The channel (``datagen.shapes.wavy_channel``) is the background mesh; its whole boundary is
+a separating wall with friction, closed at the bottom. The body (a disk, a square or a ring
+of size ``radius``) starts centred in the straight inlet section with ``velocity`` and falls
+under gravity.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import shapes
+from ..mesh import Mesh
+from ..mpm.boundary import Wall
+from .base import ConfigError, Scene, check_params, make_material, outline, vertex_volumes
+
+NAME = "wavy_channel"
+DEFAULTS = {
+    "amplitude": 0.5, "omega1": 0.6283185307179586, "omega2": 0.15707963267948966, "width": 2.0,
+    "length": 10.0, "inlet": 2.5, "outlet": 0.5, "radius": 0.5, "shape": "disk", "velocity": [0.0, 0.0],
+    "E": 1e5, "nu": 0.3, "density": 100.0, "gravity": 9.81, "friction": 0.1, "body_size": 0.125,
+    "mesh_size": 0.2, "material": "neo_hookean",
+}
+OUTPUT = {"frames": 50, "frame_interval": 0.04}
+SOLVER = {"transfer": "flip"}
+BODY_SHAPES = {"disk", "square", "ring"}
+
+
+def params(given: dict) -> dict:
+    p = check_params(
+        NAME, DEFAULTS, given,
+        positive=("width", "length", "radius", "E", "density", "body_size", "mesh_size"),
+        choices={"material": {"linear", "neo_hookean", "fixed_corotated"}, "shape": BODY_SHAPES},
+    )
+    if 2 * p["radius"] >= p["width"] or 2 * p["radius"] >= p["inlet"]:
+        raise ConfigError(f"params.radius {p['radius']} does not fit the channel: it needs 2 * radius < "
+                          f"params.width ({p['width']}) and < params.inlet ({p['inlet']})")
+    return p
+
+
+def body_shape(shape: str, radius: float, size: float, center) -> Mesh:
+    """The falling body: a disk, a square of half-side ``radius`` or a ring, centred at ``center``."""
+    if shape == "square":
+        return shapes.rectangle(2 * radius, 2 * radius, size, origin=np.asarray(center) - radius)
+    if shape == "ring":
+        return shapes.annulus(0.5 * radius, radius, size, center=center)
+    return shapes.disk(radius, size, center=center)
+
+
+def build(p: dict) -> Scene:
+    domain = shapes.wavy_channel(p["amplitude"], p["omega1"], p["omega2"], p["width"], p["length"],
+                                 p["mesh_size"], inlet=p["inlet"], outlet=p["outlet"])
+    center = [p["width"] / 2, p["length"] + p["inlet"] / 2]
+    body = body_shape(p["shape"], p["radius"], p["body_size"], center)
+    v = np.tile(np.asarray(p["velocity"], float), (body.n_nodes, 1))
+    material = make_material(p["material"], p["E"], p["nu"], p["density"])
+    obstacle_nodes, obstacle_facets = outline(domain)
+    return Scene(
+        domain=domain, body=body, x=body.nodes.copy(), v=v, volume=vertex_volumes(body),
+        materials=[(material, None)], tracked=np.arange(body.n_nodes),
+        walls=[Wall("separating", lambda c, n: np.ones(len(c), bool), p["friction"])],
+        gravity=np.array([0.0, -p["gravity"]]), grid_spacing=p["mesh_size"],
+        obstacle_nodes=obstacle_nodes, obstacle_facets=obstacle_facets,
+    )

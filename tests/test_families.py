@@ -1,0 +1,109 @@
+"""Dataset families: every quick variant gives finite, mass-conserving, contained, energy-bounded data."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from datagen.dataset import NodeType
+from datagen.families import FAMILIES, get_family
+from datagen.generate import load_dataset_config, trajectory_config
+from datagen.scenes import ConfigError
+from datagen.simulation import simulate
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "datasets"
+
+
+def _inside_box(traj, tol):
+    x0, y0, x1, y1 = traj.config["params"]["box"]
+    p = traj.positions
+    return (p[..., 0] >= x0 - tol).all() and (p[..., 0] <= x1 + tol).all() and \
+        (p[..., 1] >= y0 - tol).all() and (p[..., 1] <= y1 + tol).all()
+
+
+def _inside_channel(traj, tol):
+    q = traj.config["params"]
+    x, y = traj.positions[..., 0], traj.positions[..., 1]
+    inside = (y > 0) & (y <= q["length"])
+    left = np.where(inside, q["amplitude"] * np.sin(q["omega1"] * y) * np.sin(q["omega2"] * y), 0.0)  # UMLS eq. 36
+    return (x >= left - tol).all() and (x <= left + q["width"] + tol).all() and (y >= -q["outlet"] - tol).all()
+
+
+def _beside_clamp(traj, tol):
+    q = traj.config["params"]
+    return (traj.positions[..., 0] >= -tol).all() and (traj.positions[..., 1] >= -q["drop"] - tol).all()
+
+
+CONTAINED = {"disks": _inside_box, "glyphs": _inside_box, "wavy_channel": _inside_channel,
+             "cantilever": _beside_clamp}
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_quick_variant_is_physical(family):
+    dconfig = load_dataset_config(CONFIGS / f"{family}_quick.yaml")
+    traj = simulate(trajectory_config(dconfig, "train", 1))
+    fam = get_family(family)
+    assert traj.mesh.dim == fam.DIM and traj.positions.shape[1:] == (traj.mesh.n_nodes, fam.DIM)
+    assert np.isfinite(traj.positions).all() and np.isfinite(traj.velocities).all()
+    mass = traj.diagnostics["mass"]
+    np.testing.assert_allclose(mass, mass[0], rtol=1e-12)
+    assert CONTAINED[family](traj, tol=0.5 * traj.config["params"]["mesh_size"])
+    d = traj.diagnostics
+    energy = d["kinetic_energy"] + d["elastic_energy"] + d["gravitational_energy"]
+    scale = d["kinetic_energy"][0] + d["gravitational_energy"][0] - d["gravitational_energy"].min() + 1e-12
+    assert energy.max() - energy[0] <= 0.05 * scale  # no energy created beyond 5% of what is available
+    assert fam.OBSTACLES == (traj.obstacle_nodes is not None and len(traj.obstacle_facets) > 0)
+    assert traj.obstacle_facets.max() < len(traj.obstacle_nodes)
+    node_type = np.full(traj.mesh.n_nodes, NodeType.FREE) if traj.node_type is None else traj.node_type
+    clamped = node_type == NodeType.CLAMPED
+    assert clamped.any() == fam.CLAMPED
+    if fam.CLAMPED:  # held by the wall: they move far less than the rest of the body
+        moved = np.linalg.norm(traj.positions - traj.positions[0], axis=-1).max(0)
+        assert moved[clamped].max() < 0.1 * moved.max()
+    if traj.body_id is not None:
+        assert len(np.unique(traj.body_id)) == len(traj.config["params"].get("radii") or traj.config["params"]["chars"])
+
+
+def test_sampling_is_seeded_and_differs_between_indices():
+    dconfig = load_dataset_config(CONFIGS / "disks_quick.yaml")
+    assert trajectory_config(dconfig, "train", 3) == trajectory_config(dconfig, "train", 3)
+    assert trajectory_config(dconfig, "train", 3) != trajectory_config(dconfig, "train", 4)
+    assert trajectory_config(dconfig, "train", 3) != trajectory_config(dconfig, "test", 3)
+
+
+def test_disks_start_apart_and_inside_the_box():
+    dconfig = load_dataset_config(CONFIGS / "disks.yaml")
+    for index in range(50):
+        p = trajectory_config(dconfig, "train", index)["params"]
+        c, r = np.asarray(p["centers"]), np.asarray(p["radii"])
+        assert 2 <= len(r) <= 3
+        assert ((c - r[:, None]) >= 0).all() and ((c + r[:, None]) <= 1).all()
+        gaps = np.linalg.norm(c[:, None] - c[None], axis=-1) - r[:, None] - r[None]
+        assert (gaps[~np.eye(len(r), dtype=bool)] > 0).all()
+
+
+def test_glyph_test_letters_are_never_in_training():
+    dconfig = load_dataset_config(CONFIGS / "glyphs.yaml")
+    train = {c for i in range(60) for s in ("train", "valid") for c in trajectory_config(dconfig, s, i)["params"]["chars"]}
+    test = {c for i in range(60) for c in trajectory_config(dconfig, "test", i)["params"]["chars"]}
+    assert test <= set(dconfig["ranges"]["test_chars"]) and not train & test
+    bad = {**dconfig, "ranges": {**dconfig["ranges"], "test_chars": "GA"}}
+    with pytest.raises(ConfigError, match="ranges.test_chars shares 'A'"):
+        trajectory_config(bad, "test", 0)
+
+
+@pytest.mark.parametrize(("ranges", "message"), [
+    ({"radius": [0.3, 0.1]}, r"ranges.radius must be a number or \[low, high\] with low <= high"),
+    ({"radious": [0.1, 0.2]}, "unknown key ranges.radious for family 'disks'"),
+    ({"radius": [0.45, 0.5]}, "ranges.radius: could not place"),
+    ({"E": [-1.0, 2.0]}, "ranges.E must be positive"),
+])
+def test_bad_ranges_name_the_key(ranges, message):
+    dconfig = load_dataset_config(CONFIGS / "disks_quick.yaml")
+    with pytest.raises(ConfigError, match=message):
+        trajectory_config({**dconfig, "ranges": {**dconfig["ranges"], **ranges}}, "train", 0)
+
+
+def test_unknown_family_lists_the_choices():
+    with pytest.raises(ConfigError, match="unknown family 'disk'.*choose one of cantilever, disks, glyphs, wavy_channel"):
+        get_family("disk")

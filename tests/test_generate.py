@@ -1,0 +1,140 @@
+"""python -m datagen: determinism, resume after a kill, shards, metadata.json and error messages."""
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+from datagen.dataset import load
+from datagen.generate import generate, jobs, load_dataset_config, main, parse_shard
+from datagen.scenes import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+QUICK = ROOT / "configs" / "datasets" / "disks_quick.yaml"
+
+
+def _digest(path) -> str:
+    """Hash of every array and attribute of a trajectory file except the timing fields."""
+    digest = hashlib.sha256()
+    with h5py.File(path, "r") as f:
+        def visit(name, item):
+            if isinstance(item, h5py.Dataset) and name != "frames/wall_time":
+                digest.update(name.encode() + item[()].tobytes())
+        f.visititems(visit)
+        for key in sorted(f.attrs):
+            if key != "wall_time":
+                digest.update(f"{key}={f.attrs[key]}".encode())
+    return digest.hexdigest()
+
+
+def _digests(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): _digest(p) for p in sorted(folder.rglob("*.h5"))}
+
+
+def _config(tmp_path, **over) -> Path:
+    """A disks_quick variant written to tmp_path (slower frames so a kill lands mid-run)."""
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump({"extends": str(QUICK), "dataset": "small", **over}))
+    return path
+
+
+def test_same_index_gives_same_arrays_and_file(tmp_path):
+    config = _config(tmp_path, splits={"train": 2})
+    generate(config, out=tmp_path / "a", progress=False)
+    generate(config, out=tmp_path / "b", workers=2, progress=False)
+    a, b = _digests(tmp_path / "a"), _digests(tmp_path / "b")
+    assert a == b and len(a) == 2
+    ta, tb = load(tmp_path / "a/small/train/00001.h5"), load(tmp_path / "b/small/train/00001.h5")
+    np.testing.assert_array_equal(ta.positions, tb.positions)
+    np.testing.assert_array_equal(ta.velocities, tb.velocities)
+    assert ta.config == tb.config
+
+
+def test_killed_run_resumes_to_the_same_files(tmp_path):
+    config = _config(tmp_path, splits={"train": 6}, output={"frames": 30})
+    generate(config, out=tmp_path / "whole", progress=False)
+    cmd = [sys.executable, "-m", "datagen", str(config), "--out", str(tmp_path / "cut"), "--quiet"]
+    folder = tmp_path / "cut" / "small" / "train"
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while not list(folder.glob("*.h5")) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = sorted(p.name for p in folder.glob("*.h5"))
+    assert 1 <= len(done) < 6, f"the kill should land mid-run, found {done}"
+    before = _digests(tmp_path / "cut")
+    finished = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert finished.returncode == 0, finished.stderr
+    assert f"{len(done)} already complete" in finished.stdout
+    after = _digests(tmp_path / "cut")
+    assert after == _digests(tmp_path / "whole")
+    assert all(after[k] == v for k, v in before.items())  # complete files were kept, not redone
+    assert not [p for p in folder.iterdir() if p.name.startswith(".")]  # no temporary left behind
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 13])
+def test_shards_are_disjoint_and_complete(n):
+    dconfig = load_dataset_config(ROOT / "configs" / "datasets" / "glyphs.yaml")
+    every = jobs(dconfig)
+    parts = [jobs(dconfig, shard=(i, n)) for i in range(n)]
+    assert sum(len(p) for p in parts) == len(every) == 1200
+    assert set().union(*map(set, parts)) == set(every)
+
+
+def test_sharded_run_matches_a_whole_run_and_writes_metadata(tmp_path):
+    config = _config(tmp_path)
+    for i in range(3):
+        generate(config, out=tmp_path / "sharded", shard=(i, 3), progress=False)
+        assert (tmp_path / "sharded/small/metadata.json").exists() == (i == 2)  # only once complete
+    generate(config, out=tmp_path / "whole", progress=False)
+    assert _digests(tmp_path / "sharded") == _digests(tmp_path / "whole")
+    meta = json.loads((tmp_path / "sharded/small/metadata.json").read_text())
+    assert meta["dim"] == 2 and meta["counts"] == {"train": 4, "valid": 1, "test": 1}
+    assert meta["dt"] == pytest.approx(0.1) and meta["statistics_split"] == "train"
+    velocities = np.concatenate([load(p).velocities.reshape(-1, 2)
+                                 for p in sorted((tmp_path / "whole/small/train").glob("*.h5"))])
+    np.testing.assert_allclose(meta["velocity"]["mean"], velocities.mean(0), atol=1e-12)
+    np.testing.assert_allclose(meta["velocity"]["std"], velocities.std(0), rtol=1e-9)
+    assert np.all(np.asarray(meta["velocity_change"]["std"]) > 0)
+    assert meta["bounds"]["lower"] == [0.0, 0.0] and meta["bounds"]["upper"] == [1.0, 1.0]  # the box
+    assert meta["nodes"]["train"]["min"] > 0
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("3/2", "need 0 <= I < N"), ("a/b", "must look like I/N"), ("1", "must look like I/N"), ("-1/2", "need 0 <= I"),
+])
+def test_bad_shard_spec(text, message):
+    with pytest.raises(ConfigError, match=message):
+        parse_shard(text)
+
+
+@pytest.mark.parametrize("over", [
+    ({"family": "disk"}, "unknown family 'disk'"),
+    ({"splits": {"training": 3}}, "'splits' must map some of train, valid, test"),
+    ({"splits": {"train": -1}}, "'splits.train' must be a count >= 0"),
+    ({"colour": 1}, "unknown dataset config key 'colour'"),
+    ({"ranges": {"radius": [0.3, 0.1]}}, "ranges.radius must be a number or [low, high]"),
+    ({"params": {"mesh_sise": 0.1}}, "unknown parameter params.mesh_sise"),
+])
+def test_cli_reports_config_errors_without_traceback(tmp_path, capsys, over):
+    over, message = over
+    code = main([str(_config(tmp_path, **over)), "--out", str(tmp_path), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    assert err.startswith("error: ") and message in err
+
+
+def test_cli_subprocess_exits_nonzero_with_one_line(tmp_path):
+    run = subprocess.run([sys.executable, "-m", "datagen", str(QUICK), "--shard", "3/2"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and run.stderr.strip() == "error: --shard 3/2: need 0 <= I < N (shards are numbered 0 to N-1)"
