@@ -107,3 +107,15 @@ def test_bad_ranges_name_the_key(ranges, message):
 def test_unknown_family_lists_the_choices():
     with pytest.raises(ConfigError, match="unknown family 'disk'.*choose one of cantilever, disks, glyphs, wavy_channel"):
         get_family("disk")
+
+
+def test_wavy_channel_body_can_be_any_glyph():
+    t = simulate({"scene": "wavy_channel", "params": {"shape": "glyph:B", "radius": 0.5, "body_size": 0.06},
+                  "output": {"frames": 3}})
+    holes = t.mesh.n_components - (t.mesh.n_nodes - len(t.mesh.edges) + t.mesh.n_cells)
+    assert holes == 2 and np.isfinite(t.positions).all()
+    extent = np.ptp(t.mesh.nodes, axis=0)
+    assert extent.max() == pytest.approx(1.0, rel=1e-9)  # fits in 2 * radius
+    np.testing.assert_allclose((t.mesh.nodes.min(0) + t.mesh.nodes.max(0)) / 2, [1.0, 11.25], atol=1e-9)
+    with pytest.raises(ConfigError, match="params.shape must be one of .* or 'glyph:<text>'"):
+        simulate({"scene": "wavy_channel", "params": {"shape": "glyph:  "}})

@@ -1,9 +1,10 @@
 """An elastic body falling through a wavy channel (UMLS §3.4, eq. 36).
 
 The channel (``datagen.shapes.wavy_channel``) is the background mesh; its whole boundary is
-a separating wall with friction, closed at the bottom. The body (a disk, a square or a ring
-of size ``radius``) starts centred in the straight inlet section with ``velocity`` and falls
-under gravity.
+a separating wall with friction, closed at the bottom. The body (``shape``: ``disk``,
+``square``, ``ring``, or ``glyph:<text>`` for the outline of any string, each fitting in a
+circle of ``radius``) starts centred in the straight inlet section with ``velocity`` and
+falls under gravity.
 """
 
 from __future__ import annotations
@@ -25,22 +26,37 @@ DEFAULTS = {
 OUTPUT = {"frames": 50, "frame_interval": 0.04}
 SOLVER = {"transfer": "flip"}
 BODY_SHAPES = {"disk", "square", "ring"}
+GLYPH_PREFIX = "glyph:"
 
 
 def params(given: dict) -> dict:
     p = check_params(
         NAME, DEFAULTS, given,
         positive=("width", "length", "radius", "E", "density", "body_size", "mesh_size"),
-        choices={"material": {"linear", "neo_hookean", "fixed_corotated"}, "shape": BODY_SHAPES},
+        choices={"material": {"linear", "neo_hookean", "fixed_corotated"}},
     )
+    glyph_text = p["shape"].removeprefix(GLYPH_PREFIX).strip()
+    if p["shape"] not in BODY_SHAPES and not (p["shape"].startswith(GLYPH_PREFIX) and glyph_text):
+        raise ConfigError(f"params.shape must be one of {sorted(BODY_SHAPES)} or 'glyph:<text>' "
+                          f"(e.g. 'glyph:B'), got {p['shape']!r}")
     if 2 * p["radius"] >= p["width"] or 2 * p["radius"] >= p["inlet"]:
         raise ConfigError(f"params.radius {p['radius']} does not fit the channel: it needs 2 * radius < "
                           f"params.width ({p['width']}) and < params.inlet ({p['inlet']})")
     return p
 
 
+def glyph_body(text: str, radius: float, size: float, center) -> Mesh:
+    """The outline of ``text`` scaled so that its bounding box fits in 2 * radius, centred at ``center``."""
+    extent = np.ptp(shapes.glyph(text, size, height=1.0).nodes, axis=0).max()
+    mesh = shapes.glyph(text, size, height=2 * radius / extent)
+    middle = (mesh.nodes.min(axis=0) + mesh.nodes.max(axis=0)) / 2
+    return Mesh(mesh.nodes - middle + np.asarray(center, float), mesh.cells)
+
+
 def body_shape(shape: str, radius: float, size: float, center) -> Mesh:
-    """The falling body: a disk, a square of half-side ``radius`` or a ring, centred at ``center``."""
+    """The falling body: a disk, a square of half-side ``radius``, a ring or a glyph, centred at ``center``."""
+    if shape.startswith(GLYPH_PREFIX):
+        return glyph_body(shape.removeprefix(GLYPH_PREFIX).strip(), radius, size, center)
     if shape == "square":
         return shapes.rectangle(2 * radius, 2 * radius, size, origin=np.asarray(center) - radius)
     if shape == "ring":
