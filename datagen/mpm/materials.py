@@ -10,6 +10,7 @@ formulas in every dimension (plane strain in 2D; in 1D exact only for nu = 0).
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import torch
@@ -22,7 +23,7 @@ _POLAR_ITERATIONS = 12
 
 
 @dataclass(frozen=True)
-class Material:
+class Material(ABC):
     """Base: Young's modulus E, Poisson ratio nu, rest density."""
 
     E: float
@@ -49,11 +50,13 @@ class Material:
         """Dilatational (P-wave) speed sqrt((lambda + 2 mu) / rho), for the CFL condition."""
         return math.sqrt((self.lam + 2.0 * self.mu) / self.density)
 
+    @abstractmethod
     def kirchhoff(self, F: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
+        """(P, d, d) Kirchhoff stress tau = P F^T."""
 
+    @abstractmethod
     def energy_density(self, F: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
+        """(P,) strain energy per unit reference volume."""
 
     def first_piola(self, F: torch.Tensor) -> torch.Tensor:
         """P = tau F^-T."""

@@ -12,7 +12,7 @@ from ..mpm.materials import MATERIALS, Material
 
 __all__ = [
     "ConfigError", "Scene", "check_params", "make_material", "lattice", "lattice_mesh",
-    "chain_mesh", "line_mesh", "vertex_volumes", "nearest", "merge_bodies", "outline",
+    "chain_mesh", "line_mesh", "vertex_volumes", "nearest", "contained_bodies", "merge_bodies", "outline",
 ]
 
 
@@ -166,3 +166,20 @@ def outline(domain: Mesh) -> tuple[np.ndarray, np.ndarray]:
     facets = domain.boundary_facets
     used, inverse = np.unique(facets.ravel(), return_inverse=True)
     return domain.nodes[used], inverse.reshape(facets.shape).astype(np.int64)
+
+
+def contained_bodies(domain: Mesh, body: Mesh, v: np.ndarray, p: dict, body_id: np.ndarray | None = None) -> Scene:
+    """Elastic bodies falling inside ``domain`` whose whole boundary is a separating wall.
+
+    p: the scene parameters ``material``, ``E``, ``nu``, ``density``, ``friction``, ``gravity``
+    and ``mesh_size``; the walls are also stored as obstacle geometry a model can see.
+    """
+    material = make_material(p["material"], p["E"], p["nu"], p["density"])
+    obstacle_nodes, obstacle_facets = outline(domain)
+    return Scene(
+        domain=domain, body=body, x=body.nodes.copy(), v=v, volume=vertex_volumes(body),
+        materials=[(material, None)], tracked=np.arange(body.n_nodes),
+        walls=[Wall("separating", lambda c, n: np.ones(len(c), bool), p["friction"])],
+        gravity=np.array([0.0, -p["gravity"]]), grid_spacing=p["mesh_size"], body_id=body_id,
+        obstacle_nodes=obstacle_nodes, obstacle_facets=obstacle_facets,
+    )

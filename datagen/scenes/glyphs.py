@@ -12,8 +12,7 @@ import numpy as np
 
 from .. import shapes
 from ..mesh import Mesh
-from ..mpm.boundary import Wall
-from .base import ConfigError, Scene, check_params, make_material, merge_bodies, outline, vertex_volumes
+from .base import ConfigError, Scene, check_params, contained_bodies, merge_bodies
 
 NAME = "glyphs"
 DEFAULTS = {
@@ -54,12 +53,4 @@ def build(p: dict) -> Scene:
                           f"inside params.box {p['box']}; move them or make them smaller")
     v = np.asarray(p["velocities"], float)[body_id]
     domain = shapes.rectangle(*(hi - lo), p["mesh_size"], origin=lo)
-    material = make_material(p["material"], p["E"], p["nu"], p["density"])
-    obstacle_nodes, obstacle_facets = outline(domain)
-    return Scene(
-        domain=domain, body=body, x=body.nodes.copy(), v=v, volume=vertex_volumes(body),
-        materials=[(material, None)], tracked=np.arange(body.n_nodes),
-        walls=[Wall("separating", lambda c, n: np.ones(len(c), bool), p["friction"])],
-        gravity=np.array([0.0, -p["gravity"]]), grid_spacing=p["mesh_size"], body_id=body_id,
-        obstacle_nodes=obstacle_nodes, obstacle_facets=obstacle_facets,
-    )
+    return contained_bodies(domain, body, v, p, body_id)

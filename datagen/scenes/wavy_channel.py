@@ -13,8 +13,7 @@ import numpy as np
 
 from .. import shapes
 from ..mesh import Mesh
-from ..mpm.boundary import Wall
-from .base import ConfigError, Scene, check_params, make_material, outline, vertex_volumes
+from .base import ConfigError, Scene, check_params, contained_bodies
 
 NAME = "wavy_channel"
 DEFAULTS = {
@@ -70,12 +69,4 @@ def build(p: dict) -> Scene:
     center = [p["width"] / 2, p["length"] + p["inlet"] / 2]
     body = body_shape(p["shape"], p["radius"], p["body_size"], center)
     v = np.tile(np.asarray(p["velocity"], float), (body.n_nodes, 1))
-    material = make_material(p["material"], p["E"], p["nu"], p["density"])
-    obstacle_nodes, obstacle_facets = outline(domain)
-    return Scene(
-        domain=domain, body=body, x=body.nodes.copy(), v=v, volume=vertex_volumes(body),
-        materials=[(material, None)], tracked=np.arange(body.n_nodes),
-        walls=[Wall("separating", lambda c, n: np.ones(len(c), bool), p["friction"])],
-        gravity=np.array([0.0, -p["gravity"]]), grid_spacing=p["mesh_size"],
-        obstacle_nodes=obstacle_nodes, obstacle_facets=obstacle_facets,
-    )
+    return contained_bodies(domain, body, v, p)
