@@ -33,7 +33,7 @@ import numpy as np
 
 from datagen.mesh import Mesh, MeshError
 
-__all__ = ["FORMAT_VERSION", "NodeType", "DatasetError", "save", "load", "is_complete"]
+__all__ = ["FORMAT_VERSION", "NodeType", "DatasetError", "save", "load", "is_complete", "content_digest"]
 
 FORMAT_VERSION = 1
 TIMING_FIELDS = ("wall_time", "frames/wall_time")
@@ -114,6 +114,29 @@ def is_complete(path) -> bool:
     except DatasetError:
         return False
     return True
+
+
+def content_digest(path) -> str:
+    """sha256 of every array and attribute of a trajectory file except the timing fields.
+
+    Two files with the same digest hold the same trajectory (the same config and index give
+    the same digest whatever machine, worker or shard generated them).
+    """
+    import hashlib
+
+    import h5py
+
+    digest = hashlib.sha256()
+    with h5py.File(path, "r") as f:
+        def visit(name, item):
+            if isinstance(item, h5py.Dataset) and name not in TIMING_FIELDS:
+                digest.update(name.encode() + item[()].tobytes())
+
+        f.visititems(visit)
+        for key in sorted(f.attrs):
+            if key not in TIMING_FIELDS:
+                digest.update(f"{key}={f.attrs[key]}".encode())
+    return digest.hexdigest()
 
 
 _REQUIRED = {

@@ -1,6 +1,5 @@
 """python -m datagen: determinism, resume after a kill, shards, metadata.json and error messages."""
 
-import hashlib
 import json
 import os
 import signal
@@ -9,12 +8,11 @@ import sys
 import time
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pytest
 import yaml
 
-from datagen.dataset import load
+from datagen.dataset import content_digest, load
 from datagen.generate import generate, jobs, load_dataset_config, main, parse_shard
 from datagen.scenes import ConfigError
 
@@ -22,22 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 QUICK = ROOT / "configs" / "datasets" / "disks_quick.yaml"
 
 
-def _digest(path) -> str:
-    """Hash of every array and attribute of a trajectory file except the timing fields."""
-    digest = hashlib.sha256()
-    with h5py.File(path, "r") as f:
-        def visit(name, item):
-            if isinstance(item, h5py.Dataset) and name != "frames/wall_time":
-                digest.update(name.encode() + item[()].tobytes())
-        f.visititems(visit)
-        for key in sorted(f.attrs):
-            if key != "wall_time":
-                digest.update(f"{key}={f.attrs[key]}".encode())
-    return digest.hexdigest()
-
-
 def _digests(folder: Path) -> dict:
-    return {str(p.relative_to(folder)): _digest(p) for p in sorted(folder.rglob("*.h5"))}
+    return {str(p.relative_to(folder)): content_digest(p) for p in sorted(folder.rglob("*.h5"))}
 
 
 def _config(tmp_path, **over) -> Path:
