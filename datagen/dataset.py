@@ -24,13 +24,12 @@ trajectory gives the same bytes apart from the timing fields (wall times).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from enum import IntEnum
 from pathlib import Path
 
 import numpy as np
 
+from datagen.atomic import atomic_path
 from datagen.mesh import Mesh, MeshError
 
 __all__ = ["FORMAT_VERSION", "NodeType", "DatasetError", "save", "load", "is_complete", "content_digest"]
@@ -64,7 +63,6 @@ def save(path, trajectory) -> Path:
     import h5py
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     t = trajectory
     n, d = t.mesh.nodes.shape
     node_type = np.zeros(n, np.int8) if t.node_type is None else np.asarray(t.node_type, np.int8)
@@ -72,9 +70,7 @@ def save(path, trajectory) -> Path:
     obstacle_nodes = np.zeros((0, d)) if t.obstacle_nodes is None else np.asarray(t.obstacle_nodes, float)
     obstacle_facets = np.zeros((0, d), np.int64) if t.obstacle_facets is None else np.asarray(t.obstacle_facets)
     frame_wall = np.zeros(len(t.times)) if t.frame_wall_times is None else np.asarray(t.frame_wall_times, float)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w", track_order=True) as f:
             attrs = {
                 "format_version": FORMAT_VERSION, "scene": str(t.config.get("scene", "")),
@@ -100,10 +96,6 @@ def save(path, trajectory) -> Path:
             for name, array in sorted(t.diagnostics.items()):
                 array = np.asarray(array)
                 _put(diagnostics, name, array.astype("S") if array.dtype.kind == "U" else array)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

@@ -12,8 +12,6 @@ import contextlib
 import hashlib
 import io
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -21,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse import csgraph
+
+from datagen.atomic import atomic_path
 
 __all__ = ["Mesh", "MeshError", "EdgeLengthStats", "ExtendedMesh", "with_extra_layer"]
 
@@ -492,16 +492,9 @@ class Mesh:
         if path.suffix.lower() in (".xdmf", ".xmf"):  # writes a companion .h5 named after it
             meshio.write(path, out, file_format=file_format)
             return
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent or ".")
-        os.close(fd)
-        try:
-            # tmp keeps the suffix; .msh is ambiguous in meshio (ANSYS first), we mean gmsh
-            default = "gmsh" if path.suffix.lower() == ".msh" else None
+        default = "gmsh" if path.suffix.lower() == ".msh" else None  # meshio would pick ANSYS first
+        with atomic_path(path, suffix=path.suffix) as tmp:  # the suffix tells meshio the format
             meshio.write(tmp, out, file_format=file_format or default)
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
 
 
 # The extra layer lives in its own module; it is part of this module's public API.

@@ -8,11 +8,11 @@ Written atomically (temporary name, then rename).
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .dataset import FORMAT_VERSION, DatasetError, load
 
 __all__ = ["dataset_metadata", "write_metadata"]
@@ -77,7 +77,7 @@ def write_metadata(root, dconfig: dict) -> Path:
     """Compute and write ``root/metadata.json`` atomically; returns its path."""
     root = Path(root)
     text = json.dumps(dataset_metadata(root, dconfig), indent=2, sort_keys=True)
-    path, tmp = root / "metadata.json", root / f".metadata.json.{os.getpid()}.tmp"
-    tmp.write_text(text + "\n")
-    os.replace(tmp, path)
+    path = root / "metadata.json"
+    with atomic_path(path) as tmp:
+        tmp.write_text(text + "\n")
     return path

@@ -91,3 +91,23 @@ def test_schema_errors(tmp_path, trajectory):
         f["mesh/cells"][0] = f["mesh/cells"][0][::-1]
     with pytest.raises(DatasetError, match="its body mesh is invalid: inverted cells"):
         load(path)
+
+
+def test_written_files_get_ordinary_permissions(tmp_path, trajectory):
+    import os
+
+    umask = os.umask(0)
+    os.umask(umask)
+    path = save(tmp_path / "p.h5", trajectory)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+    trajectory.mesh.write(tmp_path / "m.vtu")
+    assert (tmp_path / "m.vtu").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_a_failed_write_leaves_nothing(tmp_path, trajectory):
+    from datagen.atomic import atomic_path
+
+    with pytest.raises(RuntimeError, match="boom"), atomic_path(tmp_path / "x.h5") as tmp:
+        tmp.write_text("partial")
+        raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []

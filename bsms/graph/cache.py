@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
+
+from datagen.atomic import atomic_path
 
 __all__ = ["FORMAT_VERSION", "hierarchy_key", "cache_path", "write_npz_atomic", "read_npz"]
 
@@ -46,16 +46,8 @@ def cache_path(cache_dir, key: str) -> Path:
 
 def write_npz_atomic(path, arrays: dict[str, np.ndarray]) -> None:
     """Write ``arrays`` as an uncompressed npz at ``path`` via a temporary file and a rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            np.savez(handle, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+        np.savez(handle, **arrays)
 
 
 def read_npz(path) -> dict[str, np.ndarray]:
