@@ -55,7 +55,7 @@ def test_killed_run_resumes_to_the_same_files(tmp_path):
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     done = sorted(p.name for p in folder.glob("*.h5"))
-    assert 1 <= len(done) < 6, f"the kill should land mid-run, found {done}"
+    assert 0 < len(done) < 6, f"the kill should land mid-run, found {done}"
     before = _digests(tmp_path / "cut")
     finished = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert finished.returncode == 0, finished.stderr
