@@ -18,11 +18,13 @@ from typing import Any, Literal, Union, get_args, get_origin
 
 import yaml
 
+from datagen.scenes.base import ConfigError as _ConfigError
+
 __all__ = ["ConfigError", "build", "load", "apply_overrides", "to_dict"]
 
 
-class ConfigError(ValueError):
-    """A config that cannot be used; the message names the dotted key and the fix."""
+# One error type for every config in the project (datasets, scenes, training runs).
+ConfigError = _ConfigError
 
 
 def _type_name(annotation) -> str:

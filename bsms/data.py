@@ -9,7 +9,8 @@ every index field by the node count of the level it points into.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 import torch
@@ -18,7 +19,10 @@ from torch_geometric.data import Data
 
 from datagen.dataset import NodeType
 
-__all__ = ["NodeType", "N_NODE_TYPES", "MeshLevels", "LevelGraph", "frame_graph"]
+__all__ = [
+    "NodeType", "N_NODE_TYPES", "MeshLevels", "LevelGraph", "frame_graph", "GraphOptions", "NoiseOptions",
+    "Scenario", "FrameDataset", "frame_velocities", "scene_constant",
+]
 
 
 N_NODE_TYPES = len(NodeType)
@@ -138,3 +142,266 @@ def frame_graph(levels: MeshLevels, *, rest_pos, pos, velocity, node_type, targe
                 setattr(data, f"{kind}_cols_{l}", cols)
                 setattr(data, f"{kind}_weights_{l}", weights)
     return data
+
+
+# ----------------------------------------------------------------------------- trajectories
+@dataclass
+class GraphOptions:
+    """How a trajectory becomes graphs (the ``graph`` section of a training config).
+
+    levels: bi-stride levels, the mesh included (every graph of a run has exactly this many,
+        so that batches line up; meshgraphnets uses level 0 only).
+    seeding, self_loops: options of :func:`bsms.graph.bistride_levels`.
+    obstacles: add the wall/container geometry of the trajectory as OBSTACLE nodes (with the
+        edges of its facets), so that the model can see the walls it bounces off.
+    contact: add world-space contact edges per frame, carried to every level.
+    contact_radius: contact distance in units of the median rest edge length of the body.
+    self_contact: also join close nodes of the same body that are not mesh neighbours.
+    constants: scene parameters (names in the trajectory's ``params``) fed to every node,
+        such as ``E``; positive values spanning a decade or more are best given as ``log_E``
+        (the natural log of ``E``).
+    """
+
+    levels: int = 4
+    seeding: Literal["min_ave", "close_center", "random"] = "min_ave"
+    self_loops: bool = True
+    obstacles: bool = True
+    contact: bool = True
+    contact_radius: float = 1.5
+    self_contact: bool = False
+    constants: list[str] = field(default_factory=list)
+
+    def validate(self, prefix: str = "graph") -> None:
+        from bsms.config import ConfigError
+
+        if not 1 <= self.levels <= 16:
+            raise ConfigError(f"config key '{prefix}.levels' must be from 1 to 16 (the mesh included), "
+                              f"got {self.levels}")
+        if self.contact_radius <= 0:
+            raise ConfigError(f"config key '{prefix}.contact_radius' must be positive (in median rest edge "
+                              f"lengths), got {self.contact_radius}")
+        for name in self.constants:
+            if not name or name == "log_":
+                raise ConfigError(f"config key '{prefix}.constants' holds an empty name")
+
+
+def scene_constant(params: dict, name: str, source: str = "the trajectory") -> float:
+    """The value of constant ``name`` (``X`` or ``log_X``) from scene parameters ``params``."""
+    key = name[4:] if name.startswith("log_") else name
+    value = params.get(key)
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not np.isfinite(value):
+        known = sorted(k for k, v in params.items() if isinstance(v, (int, float)) and not isinstance(v, bool))
+        raise ValueError(f"graph constant {name!r}: {source} has no numeric scene parameter {key!r}; "
+                         f"numeric parameters: {', '.join(known) or 'none'}")
+    if key != name:
+        if value <= 0:
+            raise ValueError(f"graph constant {name!r}: {source} has {key} = {value}, which has no logarithm")
+        return float(np.log(value))
+    return float(value)
+
+
+def frame_velocities(positions: np.ndarray, initial_velocity: np.ndarray, frame_dt: float) -> np.ndarray:
+    """(T, N, d) input velocities: the initial condition at frame 0, then (x_t - x_{t-1}) / dt.
+
+    Finite differences make the learned update exact to integrate: x_{t+1} = x_t + dt (v_t + dv).
+    """
+    velocities = np.empty_like(positions)
+    velocities[0] = initial_velocity
+    velocities[1:] = np.diff(positions, axis=0) / frame_dt
+    return velocities
+
+
+@dataclass
+class Scenario:
+    """The fixed part of the graphs of one trajectory (or of one mesh placed in a scene).
+
+    Nodes are the body mesh vertices followed by the obstacle nodes (if the options add them).
+    rest_pos (N, d), node_type (N,), body_id (N,) (obstacles get one id after the bodies),
+    edges (E, 2) mesh edges (body cells and obstacle facets), cells: the body cells, n_body:
+    body vertex count, hierarchy / levels: the bi-stride levels, constants (k,), frame_dt:
+    time between frames, contact_radius: absolute contact distance.
+    """
+
+    rest_pos: np.ndarray
+    node_type: np.ndarray
+    body_id: np.ndarray
+    edges: np.ndarray
+    cells: np.ndarray
+    n_body: int
+    hierarchy: object
+    levels: MeshLevels
+    constants: np.ndarray
+    frame_dt: float
+    contact_radius: float
+    options: GraphOptions
+
+    @classmethod
+    def build(cls, mesh, options: GraphOptions, *, frame_dt: float, node_type=None, body_id=None,
+              obstacle_nodes=None, obstacle_facets=None, params: dict | None = None, cache_dir=None,
+              source: str = "the trajectory") -> Scenario:
+        """The scenario of body ``mesh`` (a datagen Mesh) with optional obstacle geometry."""
+        from bsms.graph import bistride_levels
+
+        n_body, dim = mesh.nodes.shape
+        node_type = np.full(n_body, NodeType.FREE, np.int64) if node_type is None else np.asarray(node_type, np.int64)
+        body_id = np.zeros(n_body, np.int64) if body_id is None else np.asarray(body_id, np.int64)
+        rest, edges = mesh.nodes, mesh.edges
+        has_obstacles = options.obstacles and obstacle_nodes is not None and len(obstacle_nodes) > 0
+        if has_obstacles:
+            obstacle_nodes = np.asarray(obstacle_nodes, np.float64).reshape(-1, dim)
+            facets = np.asarray(obstacle_facets, np.int64).reshape(len(obstacle_facets), -1)
+            pairs = np.concatenate([facets[:, [a, b]] for a in range(facets.shape[1])
+                                    for b in range(a + 1, facets.shape[1])]) + n_body
+            rest = np.concatenate([rest, obstacle_nodes])
+            edges = np.concatenate([edges, np.unique(np.sort(pairs, axis=1), axis=0)])
+            node_type = np.concatenate([node_type, np.full(len(obstacle_nodes), NodeType.OBSTACLE, np.int64)])
+            body_id = np.concatenate([body_id, np.full(len(obstacle_nodes), body_id.max() + 1, np.int64)])
+        hierarchy = bistride_levels(edges, rest, levels=options.levels, seeding=options.seeding,
+                                    self_loops=options.self_loops, cache_dir=cache_dir)
+        constants = np.array([scene_constant(params or {}, name, source) for name in options.constants])
+        return cls(
+            rest_pos=rest, node_type=node_type, body_id=body_id, edges=edges, cells=mesh.cells, n_body=n_body,
+            hierarchy=hierarchy, levels=MeshLevels.from_hierarchy(hierarchy), constants=constants,
+            frame_dt=float(frame_dt), contact_radius=options.contact_radius * float(np.median(mesh.edge_lengths)),
+            options=options,
+        )
+
+    @classmethod
+    def from_trajectory(cls, trajectory, options: GraphOptions, cache_dir=None, source: str = "the trajectory"):
+        frame_dt = float(trajectory.times[1] - trajectory.times[0]) if len(trajectory.times) > 1 else float("nan")
+        return cls.build(
+            trajectory.mesh, options, frame_dt=frame_dt, node_type=trajectory.node_type,
+            body_id=trajectory.body_id, obstacle_nodes=trajectory.obstacle_nodes,
+            obstacle_facets=trajectory.obstacle_facets, params=trajectory.config.get("params", {}),
+            cache_dir=cache_dir, source=source,
+        )
+
+    @property
+    def n_nodes(self) -> int:
+        return self.rest_pos.shape[0]
+
+    @property
+    def kinematic(self) -> np.ndarray:
+        """(N,) bool: nodes whose motion is prescribed (clamped and obstacle nodes)."""
+        return self.node_type != NodeType.FREE
+
+    def full(self, body_values: np.ndarray, obstacle_value: np.ndarray | float | None = None) -> np.ndarray:
+        """(..., N, d): body-node values extended to the obstacle nodes (static: rest / 0)."""
+        extra = self.n_nodes - self.n_body
+        if extra == 0:
+            return np.asarray(body_values)
+        if obstacle_value is None:
+            obstacle_value = self.rest_pos[self.n_body:]
+        pad = np.broadcast_to(obstacle_value, body_values.shape[:-2] + (extra, body_values.shape[-1]))
+        return np.concatenate([body_values, pad], axis=-2)
+
+    def contacts(self, pos: np.ndarray) -> tuple | None:
+        """Contact edges of positions ``pos`` (N, d) on every level, or None without contact."""
+        from bsms.graph import coarsen_contacts, contact_edges
+
+        if not self.options.contact:
+            return None
+        level0 = contact_edges(pos, self.body_id, self.contact_radius, exclude=self.edges,
+                               self_contact=self.options.self_contact)
+        return coarsen_contacts(self.hierarchy, level0)
+
+    def graph(self, pos: np.ndarray, velocity: np.ndarray, target: np.ndarray | None = None) -> LevelGraph:
+        """The graph of one state: ``pos`` and ``velocity`` (N, d) of all nodes."""
+        constants = None
+        if len(self.constants):
+            constants = np.broadcast_to(self.constants, (self.n_nodes, len(self.constants)))
+        graph = frame_graph(self.levels, rest_pos=self.rest_pos, pos=pos, velocity=velocity, node_type=self.node_type,
+                            target=target, constants=constants, contacts=self.contacts(pos))
+        graph.frame_dt = torch.full((self.n_nodes,), self.frame_dt, dtype=torch.float32)
+        return graph
+
+
+@dataclass
+class NoiseOptions:
+    """Training noise on the inputs of free nodes, with the target corrected (``data.noise``).
+
+    position: std (m) added to x_t; the input velocity sees it, and the target asks for a
+        fraction ``gamma`` of it to be undone in position (gamma = 0 restores the velocity only,
+        1 also the position; MeshGraphNets uses 0.1 for cloth).
+    velocity: std (m/s) added to the input velocity only; the target restores the velocity.
+    """
+
+    position: float = 0.0
+    velocity: float = 0.0
+    gamma: float = 0.1
+
+    def validate(self, prefix: str = "noise") -> None:
+        from bsms.config import ConfigError
+
+        for name in ("position", "velocity"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"config key '{prefix}.{name}' is a standard deviation and must be >= 0, "
+                                  f"got {getattr(self, name)}")
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ConfigError(f"config key '{prefix}.gamma' must lie in [0, 1], got {self.gamma}")
+
+
+class FrameDataset(torch.utils.data.Dataset):
+    """Every (trajectory, frame t) of some trajectory files as one-step samples t -> t+1.
+
+    Scenarios (hierarchies) are built once per file (``cache_dir`` keeps hierarchies across
+    runs); positions are held in memory in float64. Items are addressed by an integer, or by
+    ``(index, noise_seed)`` to add the training noise of ``noise`` drawn from that seed, so the
+    noise of a sample does not depend on which process or batch draws it.
+    """
+
+    def __init__(self, files, options: GraphOptions, noise: NoiseOptions | None = None, cache_dir=None,
+                 progress: bool = False):
+        from tqdm import tqdm
+
+        from datagen.dataset import load
+
+        self.files = [str(f) for f in files]
+        if not self.files:
+            raise ValueError("FrameDataset needs at least one trajectory file")
+        self.options, self.noise = options, noise or NoiseOptions()
+        self.scenarios: list[Scenario] = []
+        self.positions: list[np.ndarray] = []
+        self.velocities: list[np.ndarray] = []
+        for path in tqdm(self.files, desc="graphs", unit="traj", disable=not progress):
+            trajectory = load(path)
+            if len(trajectory.times) < 2:
+                raise ValueError(f"trajectory file {path} has {len(trajectory.times)} frame(s); training needs >= 2")
+            scenario = Scenario.from_trajectory(trajectory, options, cache_dir, source=f"trajectory file {path}")
+            positions = scenario.full(trajectory.positions)
+            initial = scenario.full(trajectory.velocities[:1], 0.0)[0]
+            self.scenarios.append(scenario)
+            self.positions.append(positions)
+            self.velocities.append(frame_velocities(positions, initial, scenario.frame_dt))
+        dims = {s.rest_pos.shape[1] for s in self.scenarios}
+        if len(dims) > 1:
+            raise ValueError(f"trajectory files mix dimensions {sorted(dims)}")
+        self.dim = dims.pop()
+        counts = [len(p) - 1 for p in self.positions]
+        self._starts = np.concatenate([[0], np.cumsum(counts)])
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    def locate(self, index: int) -> tuple[int, int]:
+        """(trajectory, frame) of sample ``index``."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"sample {index} out of range for {len(self)} samples")
+        trajectory = int(np.searchsorted(self._starts, index, side="right") - 1)
+        return trajectory, int(index - self._starts[trajectory])
+
+    def __getitem__(self, key) -> LevelGraph:
+        index, noise_seed = key if isinstance(key, tuple) else (key, None)
+        k, t = self.locate(int(index))
+        scenario, positions, velocities = self.scenarios[k], self.positions[k], self.velocities[k]
+        pos, velocity = positions[t].copy(), velocities[t].copy()
+        target = velocities[t + 1] - velocities[t]
+        if noise_seed is not None and (self.noise.position > 0 or self.noise.velocity > 0):
+            rng = np.random.default_rng(noise_seed)
+            free = (scenario.node_type == NodeType.FREE)[:, None]
+            dx = free * rng.normal(0.0, self.noise.position, pos.shape)
+            dv = free * rng.normal(0.0, self.noise.velocity, pos.shape)
+            pos += dx
+            velocity += dx / scenario.frame_dt + dv
+            target = target - (1.0 + self.noise.gamma) * dx / scenario.frame_dt - dv
+        return scenario.graph(pos, velocity, target)

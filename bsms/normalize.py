@@ -3,7 +3,14 @@
 from __future__ import annotations
 
 import torch
+import torch.distributed
 from torch import Tensor, nn
+
+
+def distributed() -> bool:
+    """Whether this process is one of several in an initialised process group."""
+    return torch.distributed.is_available() and torch.distributed.is_initialized() \
+        and torch.distributed.get_world_size() > 1
 
 
 class Normalizer(nn.Module):
@@ -35,12 +42,19 @@ class Normalizer(nn.Module):
     @torch.no_grad()
     def accumulate(self, x: Tensor) -> None:
         """Add the rows of ``x (..., size)`` to the statistics, unless frozen."""
-        if self.frozen or x.numel() == 0:
+        if self.frozen:
             return
         flat = x.detach().reshape(-1, x.shape[-1]).to(torch.float64)
-        self.count += flat.shape[0]
-        self.total += flat.sum(dim=0)
-        self.total_squares += (flat * flat).sum(dim=0)
+        increments = torch.cat([flat.new_tensor([flat.shape[0]]), flat.sum(dim=0), (flat * flat).sum(dim=0)])
+        if distributed():
+            # every process adds what all processes saw, so the statistics stay identical
+            torch.distributed.all_reduce(increments)
+        if increments[0] == 0:
+            return
+        size = self.total.shape[0]
+        self.count += increments[0]
+        self.total += increments[1 : 1 + size]
+        self.total_squares += increments[1 + size :]
         self.accumulations += 1
 
     @property

@@ -37,10 +37,12 @@ class LearnedSimulator(nn.Module):
         contact: whether graphs carry contact edges.
         n_constants: per-node scene constants appended to the node inputs.
         latent, n_passes: width of the latents; message passes of meshgraphnets.
+        hidden_layers: hidden layers of every MLP.
+        max_accumulations: batches after which the normalisers freeze.
     """
 
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
-                 latent: int = 128, n_passes: int = 15, max_accumulations: int = 1_000_000):
+                 latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000):
         super().__init__()
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
@@ -49,9 +51,11 @@ class LearnedSimulator(nn.Module):
         node_in = dim + N_NODE_TYPES + n_constants
         edge_dims = [2 * dim + 2] + ([dim + 1] if contact else [])
         if core == "bsms_gnn":
-            self.core = BSMSGNN(node_in, dim, edge_dims, n_levels, latent=latent, hidden=latent)
+            self.core = BSMSGNN(node_in, dim, edge_dims, n_levels, latent=latent, hidden=latent,
+                                hidden_layers=hidden_layers)
         else:
-            self.core = MeshGraphNets(node_in, dim, edge_dims, n_passes=n_passes, latent=latent, hidden=latent)
+            self.core = MeshGraphNets(node_in, dim, edge_dims, n_passes=n_passes, latent=latent, hidden=latent,
+                                      hidden_layers=hidden_layers)
         self.node_normalizer = Normalizer(node_in, max_accumulations)
         self.output_normalizer = Normalizer(dim, max_accumulations)
         self.edge_normalizers = nn.ModuleList(
@@ -97,13 +101,17 @@ class LearnedSimulator(nn.Module):
         levels = [self._level(graph, l, accumulate) for l in range(self.n_levels)]
         return self.core(self.node_normalizer(raw), levels)
 
-    def loss(self, graph: LevelGraph, accumulate: bool = False) -> Tensor:
-        """Mean squared error on the normalised target over the nodes of ``loss_mask``."""
+    def loss(self, graph: LevelGraph, accumulate: bool = False, reduction: str = "mean") -> Tensor:
+        """Squared error on the normalised target, summed over dimensions, over ``loss_mask`` nodes.
+
+        reduction: ``"mean"`` over those nodes, or ``"sum"`` (a trainer that splits a batch
+        over processes divides the sum by the node count of the whole batch).
+        """
         if accumulate:
             self.output_normalizer.accumulate(graph.target[graph.loss_mask])
         prediction = self(graph, accumulate)
-        error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)
-        return error[graph.loss_mask].mean()
+        error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)[graph.loss_mask]
+        return error.sum() if reduction == "sum" else error.mean()
 
     @torch.no_grad()
     def velocity_change(self, graph: LevelGraph) -> Tensor:

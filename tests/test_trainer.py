@@ -1,0 +1,263 @@
+"""bsms.trainer, bsms.checkpoint and train.py: learning, exact resume, data parallelism, errors."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from torch_geometric.data import Batch
+
+from bsms.checkpoint import CheckpointError, load_checkpoint, load_model
+from bsms.config import ConfigError
+from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
+from bsms.trainer import Trainer, build_model, load_config, lr_factor, prepare_dataset, split_files
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def config_dict(tiny_dataset, runs, **sections) -> dict:
+    dataset_config, data_root = tiny_dataset
+    config = {
+        "name": "tiny", "runs": str(runs),
+        "dataset": {"config": str(dataset_config), "root": str(data_root), "generate": False},
+        "graph": {"levels": 3, "constants": ["log_E"]},
+        "noise": {"position": 2e-4, "velocity": 1e-3},
+        "model": {"name": "bsms_gnn", "latent": 32},
+        "optim": {"lr": 1e-3, "warmup": 3},
+        "train": {"steps": 12, "batch_size": 2, "normalizer_steps": 6, "log_every": 4, "valid_every": 6,
+                  "checkpoint_every": 6, "progress": False, "valid_samples": 4},
+    }
+    for section, values in sections.items():
+        config[section] = {**config.get(section, {}), **values} if isinstance(values, dict) else values
+    return config
+
+
+@pytest.fixture(scope="module")
+def folder(tiny_dataset, tmp_path_factory):
+    config = load_config(config_dict(tiny_dataset, tmp_path_factory.mktemp("runs")))
+    return prepare_dataset(config, progress=False)
+
+
+# ----------------------------------------------------------------------------- samples
+def test_samples_integrate_to_the_next_frame(folder):
+    """No noise: x_t + dt (v_t + target) is frame t+1; v_t is the backward difference."""
+    dataset = FrameDataset(split_files(folder, "train"), GraphOptions(levels=2))
+    k, t = dataset.locate(len(dataset) - 1)
+    graph = dataset[len(dataset) - 1]
+    positions = dataset.positions[k]
+    dt = dataset.scenarios[k].frame_dt
+    np.testing.assert_allclose(graph.velocity.numpy(), (positions[t] - positions[t - 1]) / dt, rtol=1e-5, atol=1e-5)
+    nxt = graph.pos.double() + dt * (graph.velocity.double() + graph.target.double())
+    np.testing.assert_allclose(nxt.numpy(), positions[t + 1], atol=1e-6)
+    assert len(dataset) == sum(len(p) - 1 for p in dataset.positions)
+
+
+@pytest.mark.parametrize("gamma", [0.0, 1.0])
+def test_noise_is_corrected_in_the_target(folder, gamma):
+    noise = NoiseOptions(position=1e-3, velocity=1e-2, gamma=gamma)
+    dataset = FrameDataset(split_files(folder, "train"), GraphOptions(levels=2), noise)
+    clean, noisy = dataset[3], dataset[(3, (0, 7, 3))]
+    again = dataset[(3, (0, 7, 3))]
+    assert torch.equal(noisy.pos, again.pos), "the noise must be a function of its seed"
+    free = clean.node_type == NodeType.FREE
+    assert not torch.equal(noisy.pos[free], clean.pos[free])
+    assert torch.equal(noisy.pos[~free], clean.pos[~free]) and torch.equal(noisy.target[~free], clean.target[~free])
+    dt = float(clean.frame_dt[0])
+    true_next_velocity = clean.velocity + clean.target
+    if gamma == 1.0:  # the target brings the noisy position back to the true next position
+        torch.testing.assert_close(noisy.pos + dt * (noisy.velocity + noisy.target),
+                                   clean.pos + dt * true_next_velocity, atol=1e-5, rtol=0)
+    else:  # the target restores the true next velocity
+        torch.testing.assert_close(noisy.velocity + noisy.target, true_next_velocity, atol=1e-4, rtol=0)
+
+
+def test_obstacles_and_contacts_batch_like_each_alone(folder):
+    dataset = FrameDataset(split_files(folder, "train"), GraphOptions(levels=3))
+    scenario, positions, velocities = dataset.scenarios[0], dataset.positions[0], dataset.velocities[0]
+    body = scenario.node_type != NodeType.OBSTACLE
+    assert not body.all() and (scenario.body_id[~body] == scenario.body_id.max()).all()
+    pos = positions[-1].copy()
+    pos[body, 1] -= pos[body, 1].min() - 0.2 * scenario.contact_radius  # the letters rest on the floor y = 0
+    graphs = [scenario.graph(pos, velocities[-1]), dataset[len(dataset) - 1]]
+    contacts = graphs[0].contact_index_0
+    assert contacts.shape[1] > 0, "letters resting on the floor must touch the wall nodes"
+    assert (scenario.body_id[contacts[0]] != scenario.body_id[contacts[1]]).all(), "no self-contact by default"
+    for l in range(1, 3):
+        assert graphs[0][f"contact_index_{l}"].shape[1] > 0, "contacts are carried to every level"
+    from bsms.models.simulator import LearnedSimulator
+
+    torch.manual_seed(0)
+    model = LearnedSimulator("bsms_gnn", 2, n_levels=3, contact=True, latent=16)
+    model.loss(graphs[1], accumulate=True)
+    model.eval()
+    with torch.no_grad():
+        alone = torch.cat([model(g) for g in graphs])
+        together = model(Batch.from_data_list(graphs))
+    torch.testing.assert_close(together, alone, rtol=1e-5, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- training
+def test_lr_schedule():
+    assert lr_factor(0, 4, 20, 0.1) == 0.25 and lr_factor(3, 4, 20, 0.1) == 1.0
+    assert lr_factor(4, 4, 20, 0.1) == pytest.approx(1.0)
+    assert lr_factor(12, 4, 20, 0.1) == pytest.approx(0.55)
+    assert lr_factor(20, 4, 20, 0.1) == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize("model", ["bsms_gnn", "meshgraphnets"])
+def test_overfits_a_tiny_dataset(tiny_dataset, folder, tmp_path, model, one_thread):
+    config = load_config(config_dict(
+        tiny_dataset, tmp_path, noise={"position": 0.0, "velocity": 0.0},
+        model={"name": model, "passes": 4}, optim={"lr": 2e-3, "warmup": 10},
+        train={"steps": 250, "batch_size": 4, "normalizer_steps": 10, "log_every": 10, "valid_every": 250,
+               "checkpoint_every": 250},
+    ))
+    trainer = Trainer(config, dataset_folder=folder)
+    first = trainer.train_step(Batch.from_data_list([trainer.train_set[i] for i in range(len(trainer.train_set))]))
+    trainer.fit()
+    whole = Batch.from_data_list([trainer.train_set[i] for i in range(len(trainer.train_set))])
+    trainer.model.eval()
+    with torch.no_grad():
+        final = float(trainer.model.loss(whole))
+    assert final < first / 10, f"one-step loss fell from {first:.3g} to {final:.3g} only"
+    metrics = (tmp_path / "tiny" / "metrics.csv").read_text().splitlines()
+    assert metrics[0] == "step,loss,lr,seconds,samples_per_s,valid_rmse"
+    assert [int(line.split(",")[0]) for line in metrics[1:]] == list(range(10, 251, 10))
+    assert metrics[-1].split(",")[-1] != "", "the last step is validated"
+
+
+def test_resume_continues_exactly(tiny_dataset, folder, tmp_path, one_thread):
+    whole = Trainer(load_config(config_dict(tiny_dataset, tmp_path / "a")), dataset_folder=folder)
+    whole.fit()
+    interrupted = Trainer(load_config(config_dict(tiny_dataset, tmp_path / "b")), dataset_folder=folder)
+    interrupted.fit(stop_at=5)  # saves latest.pt at step 5, as a killed run would have
+    del interrupted
+    resumed = Trainer(load_config(config_dict(tiny_dataset, tmp_path / "b")), dataset_folder=folder, resume=True)
+    assert resumed.step == 5
+    resumed.fit()
+    for (name, a), b in zip(whole.model.state_dict().items(), resumed.model.state_dict().values(), strict=True):
+        assert torch.equal(a, b), f"{name} differs after resume"
+    assert whole.optimizer.state_dict()["state"][0]["exp_avg"].equal(resumed.optimizer.state_dict()["state"][0]["exp_avg"])
+    rows_a = [r.split(",")[:3] for r in (tmp_path / "a/tiny/metrics.csv").read_text().splitlines()]
+    rows_b = [r.split(",")[:3] for r in (tmp_path / "b/tiny/metrics.csv").read_text().splitlines()]
+    assert [r[0] for r in rows_a] == [r[0] for r in rows_b] == ["step", "4", "6", "8", "12"]
+    assert rows_a[-1][1:] == rows_b[-1][1:], "loss and lr logged after resume equal the uninterrupted run's"
+
+
+def test_two_processes_make_the_update_of_one(tiny_dataset, folder, tmp_path):
+    """torchrun with 2 gloo processes, each on half the batch, equals one process on all of it."""
+    data = config_dict(tiny_dataset, tmp_path, train={"steps": 3, "batch_size": 4, "normalizer_steps": 2})
+    outputs = {}
+    for label, launcher in (("one", [sys.executable]),
+                            ("two", [sys.executable, "-m", "torch.distributed.run", "--standalone",
+                                     "--nproc_per_node", "2"])):
+        config = tmp_path / f"{label}.yaml"
+        config.write_text(yaml.safe_dump({**data, "name": label}))
+        outputs[label] = tmp_path / f"{label}.pt"
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": os.pathsep.join(sys.path)}
+        result = subprocess.run([*launcher, str(ROOT / "tests" / "ddp_worker.py"), str(config), str(folder),
+                                 str(outputs[label])], capture_output=True, text=True, env=env, timeout=300)
+        assert result.returncode == 0, result.stderr[-3000:]
+    one, two = torch.load(outputs["one"]), torch.load(outputs["two"])
+    for name, value in one.items():
+        torch.testing.assert_close(two[name], value, rtol=1e-5, atol=1e-6, msg=lambda m, name=name: f"{name}: {m}")
+    torch.manual_seed(0)
+    initial = build_model(load_config(data), 2).state_dict()
+    moved = max(float((one[name] - initial[name]).abs().max()) for name in initial if "normalizer" not in name)
+    assert moved > 1e-4, "the steps must have changed the weights for the comparison to mean anything"
+    assert one["node_normalizer.count"] > 0 and torch.equal(one["node_normalizer.count"], two["node_normalizer.count"])
+
+
+def test_checkpoint_reproduces_predictions_in_a_fresh_process(tiny_dataset, folder, tmp_path):
+    trainer = Trainer(load_config(config_dict(tiny_dataset, tmp_path, train={"steps": 6})), dataset_folder=folder)
+    trainer.fit()
+    graph = trainer.valid_set[2]
+    model, config, state = load_model(tmp_path / "tiny")
+    assert state["step"] == 6 and config.model.name == "bsms_gnn"
+    with torch.no_grad():
+        here = model.velocity_change(graph)
+    torch.save(here, tmp_path / "here.pt")
+    script = (
+        "import sys, torch\n"
+        "from bsms.checkpoint import load_model\n"
+        "from bsms.data import FrameDataset\n"
+        "from bsms.trainer import split_files\n"
+        "model, config, _ = load_model(sys.argv[1])\n"
+        "graph = FrameDataset(split_files(sys.argv[2], 'valid'), config.graph)[2]\n"
+        "assert torch.equal(model.velocity_change(graph), torch.load(sys.argv[3])), 'predictions differ'\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    result = subprocess.run([sys.executable, "-c", script, str(tmp_path / "tiny"), str(folder), str(tmp_path / "here.pt")],
+                            capture_output=True, text=True, env=env, timeout=120)
+    assert result.returncode == 0, result.stderr[-3000:]
+
+
+# ----------------------------------------------------------------------------- errors
+@pytest.mark.parametrize("override, message", [
+    ({"model": {"name": "gcn"}}, "config key 'model.name' must be one of 'bsms_gnn', 'meshgraphnets', got 'gcn'"),
+    ({"optim": {"lr": -1.0}}, "config key 'optim.lr' must be positive, got -1.0"),
+    ({"train": {"batch_size": 0}}, "config key 'train.batch_size' must be >= 1, got 0"),
+    ({"train": {"stpes": 10}}, "unknown config key 'train.stpes'"),
+    ({"graph": {"levels": 0}}, "config key 'graph.levels' must be from 1 to 16"),
+    ({"noise": {"gamma": 2.0}}, "config key 'noise.gamma' must lie in [0, 1], got 2.0"),
+    ({"name": "a/b"}, "config key 'name' must be a run folder name"),
+])
+def test_config_errors_name_the_key(tiny_dataset, tmp_path, override, message):
+    with pytest.raises(ConfigError) as info:
+        load_config(config_dict(tiny_dataset, tmp_path, **override))
+    assert message in str(info.value)
+
+
+def test_run_folder_errors(tiny_dataset, folder, tmp_path):
+    data = config_dict(tiny_dataset, tmp_path, train={"steps": 2})
+    with pytest.raises(ConfigError, match="cannot resume: .*latest.pt does not exist"):
+        Trainer(load_config(data), dataset_folder=folder, resume=True)
+    Trainer(load_config(data), dataset_folder=folder).fit()
+    with pytest.raises(ConfigError, match="already holds a checkpoint; pass --resume"):
+        Trainer(load_config(data), dataset_folder=folder)
+    with pytest.raises(ConfigError, match="config key 'optim.lr' changed from 0.001 to 0.002"):
+        Trainer(load_config(config_dict(tiny_dataset, tmp_path, optim={"lr": 2e-3}, train={"steps": 2})),
+                dataset_folder=folder, resume=True)
+    with pytest.raises(ConfigError, match="'train.amp' needs a CUDA device"):
+        Trainer(load_config(config_dict(tiny_dataset, tmp_path, name="amp", train={"amp": True, "device": "cpu"})),
+                dataset_folder=folder)
+    with pytest.raises(ConfigError, match=r"train.batch_size. \(1000\) exceeds the 12 training samples"):
+        Trainer(load_config(config_dict(tiny_dataset, tmp_path, name="big", train={"batch_size": 1000})),
+                dataset_folder=folder)
+    with pytest.raises(ConfigError, match="dataset config nope.yaml does not exist"):
+        prepare_dataset(load_config(config_dict(tiny_dataset, tmp_path, dataset={"config": "nope.yaml"})))
+    with pytest.raises(ValueError, match="graph constant 'log_G'.*no numeric scene parameter 'G'"):
+        FrameDataset(split_files(folder, "valid"), GraphOptions(constants=["log_G"]))
+
+
+def test_checkpoint_errors(tmp_path):
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {tmp_path / 'pwned'}",))
+
+    torch.save({"format": 1, "evil": Payload()}, tmp_path / "evil.pt")
+    with pytest.raises(CheckpointError, match="evil.pt is damaged or not a bsms checkpoint"):
+        load_checkpoint(tmp_path / "evil.pt")
+    assert not (tmp_path / "pwned").exists(), "loading a checkpoint must never run code"
+    (tmp_path / "cut.pt").write_bytes(b"PK\x03\x04 truncated")
+    with pytest.raises(CheckpointError, match="cut.pt is damaged"):
+        load_checkpoint(tmp_path / "cut.pt")
+    (tmp_path / "run").mkdir()
+    with pytest.raises(CheckpointError, match="has no usable checkpoint .*checkpoints/best.pt, checkpoints/latest.pt"):
+        load_model(tmp_path / "run")
+    with pytest.raises(CheckpointError, match="run folder .*nowhere does not exist"):
+        load_model(tmp_path / "nowhere")
+
+
+def test_train_py_reports_config_errors(tmp_path):
+    config = tmp_path / "bad.yaml"
+    config.write_text("name: x\nmodel: {name: gcn}\ndataset: {config: configs/datasets/glyphs_quick.yaml}\n")
+    result = subprocess.run([sys.executable, str(ROOT / "train.py"), str(config), "optim.lr=3e-4"],
+                            capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert result.returncode == 2
+    assert result.stderr.strip() == ("error: config key 'model.name' must be one of 'bsms_gnn', 'meshgraphnets', "
+                                     "got 'gcn'")
