@@ -1,9 +1,10 @@
 """Train a learned simulator: ``python train.py CONFIG [section.key=value ...] [--resume]``.
 
 Generates the dataset the config names if trajectories are missing, builds (or loads the
-cached) bi-stride hierarchies, trains, validates, and writes everything under
-``<runs>/<name>/``. Launch with ``torchrun --nproc_per_node K train.py CONFIG`` for
-data-parallel training on K processes (gloo on CPU, nccl on GPU).
+cached) bi-stride hierarchies, trains, validates, evaluates rollouts against the solver
+(``evaluate.enabled``), and writes everything under ``<runs>/<name>/``, report.md last.
+Launch with ``torchrun --nproc_per_node K train.py CONFIG`` for data-parallel training on
+K processes (gloo on CPU, nccl on GPU).
 """
 
 from __future__ import annotations
@@ -41,10 +42,23 @@ def main(argv=None) -> int:
         print(f"\ninterrupted; the latest checkpoint is saved. Continue with: python train.py {args.config} "
               f"{' '.join(args.overrides)} --resume".replace("  ", " "), file=sys.stderr)
         return 130
-    if trainer.rank == 0:
-        print(f"trained {summary['steps']} steps in {summary['seconds']:.1f} s; final loss {summary['loss']:.4g}; "
-              f"best validation one-step RMSE {summary['best_valid_rmse']:.4g} m; checkpoints in "
-              f"{trainer.run_dir / 'checkpoints'}")
+    if trainer.rank != 0:
+        return 0
+    print(f"trained {summary['steps']} steps in {summary['seconds']:.1f} s; final loss {summary['loss']:.4g}; "
+          f"best validation one-step RMSE {summary['best_valid_rmse']:.4g} m; checkpoints in "
+          f"{trainer.run_dir / 'checkpoints'}", flush=True)
+    if config.evaluate.enabled:
+        from bsms.evaluate import evaluate
+
+        try:
+            result = evaluate(trainer.run_dir, options=config.evaluate, progress=config.train.progress)
+        except (ConfigError, CheckpointError, DatasetError) as exc:
+            print(f"error: evaluation failed: {exc}", file=sys.stderr)
+            return 2
+        learned = result["rows"][0]
+        print(f"evaluated on {learned['trajectories']} {config.evaluate.split} trajectories: rollout RMSE "
+              f"{learned['rmse_all']:.4g} m ({learned['rel_all']:.3g} of the body size), "
+              f"{learned['unstable']} unstable; report: {result['report']}")
     return 0
 
 

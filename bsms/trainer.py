@@ -17,6 +17,7 @@ one process on the whole batch (normaliser statistics are summed over processes 
 from __future__ import annotations
 
 import csv
+import json
 import math
 import os
 import random
@@ -33,6 +34,7 @@ from torch_geometric.data import Batch
 from bsms.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from bsms.config import ConfigError, apply_overrides, build, load, to_dict
 from bsms.data import FrameDataset, GraphOptions, NoiseOptions
+from bsms.evaluate import EvaluateConfig
 from bsms.models.simulator import CORES, LearnedSimulator
 from datagen.atomic import atomic_path
 
@@ -148,6 +150,7 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
 
     def validate(self, prefix: str = "") -> None:
         if not self.name or "/" in self.name or self.name.startswith("."):
@@ -365,6 +368,10 @@ class Trainer:
             tmp.write_text(yaml.safe_dump(to_dict(self.config), sort_keys=False))
         with atomic_path(self.run_dir / "metrics.csv") as tmp:
             tmp.write_text(",".join(METRICS_FIELDS) + "\n")
+        metadata = self.dataset_folder / "metadata.json"
+        if metadata.is_file():  # the dataset's generating config, so the run folder stands alone
+            with atomic_path(self.run_dir / "dataset.json") as tmp:
+                tmp.write_text(json.dumps(json.loads(metadata.read_text())["config"], indent=1))
 
     def _check_resumable(self) -> None:
         saved_path = self.run_dir / "config.yaml"

@@ -4,8 +4,14 @@ A config is a dict or a YAML file path::
 
     scene: vibrating_bar          # a name from datagen.scenes.SCENES
     params: {n_cells: 40}         # scene parameters (defaults: the paper's settings)
-    solver: {kernel: umls, transfer: flip, dt: null, cfl: 0.3, device: cpu}
+    solver: {kernel: umls, transfer: flip, dt: null, cfl: 0.3, device: cpu,
+             reference: eulerian, epsilon: 0.01, fraction: 0.01, contact_margin: 1.0}
     output: {frames: 100, frame_interval: 0.1}
+
+solver.reference picks the A-ULMPM reference configuration (datagen.mpm.solver): ``eulerian``
+recomputes kernels every step, ``total`` never, ``adaptive`` when the fraction of particles with
+|det F^{sn} - 1| >= epsilon reaches ``fraction`` or when two separate clusters of active nodes
+may have come within ``contact_margin`` cells of each other (null: no contact trigger).
 
 Unknown keys and bad values raise :class:`ConfigError` naming the key.
 """
@@ -25,7 +31,19 @@ from .mesh import Mesh, with_extra_layer
 from .mpm import linalg
 from .mpm.boundary import grid_conditions, mesh_conditions
 from .mpm.kernels import Grid, MeshTables
-from .mpm.solver import KERNELS, TRANSFERS, Model, State, cfl_time_step, diagnostics, kirchhoff_stress, step
+from .mpm.solver import (
+    KERNELS,
+    REFERENCES,
+    TRANSFERS,
+    Grip,
+    Model,
+    State,
+    WallPlane,
+    cfl_time_step,
+    diagnostics,
+    kirchhoff_stress,
+    step,
+)
 from .scenes import ConfigError, Scene, get_scene
 
 __all__ = ["simulate", "Trajectory", "ConfigError", "resolve_config", "build_simulation", "Simulation"]
@@ -34,6 +52,7 @@ TOP_LEVEL = {"scene", "params", "solver", "output", "seed"}
 SOLVER_DEFAULTS = {
     "kernel": "umls", "transfer": "flip", "dt": None, "cfl": 0.3, "device": "cpu", "dtype": "float64",
     "grid_spacing": None, "extra_layer": True, "layer_thickness": 1.0, "threads": None,
+    "reference": "eulerian", "epsilon": 0.01, "fraction": 0.01, "contact_margin": 1.0,
 }
 OUTPUT_DEFAULTS = {"frames": None, "frame_interval": None, "step_diagnostics": False}
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -53,7 +72,9 @@ class Trajectory:
     node_type: (N,) datagen.dataset.NodeType codes of the tracked points (None: all free).
     body_id: (N,) body of each tracked point (None: one body). obstacle_nodes (M, d) and
     obstacle_facets (F, d): wall/container geometry a model can see (None: none).
-    kernel_rebuilds: how many times kernels were computed (None: not counted).
+    kernel_rebuilds: how many times kernels were computed: one per step in eulerian mode, one
+    per reference update (the first included) in total/adaptive mode. diagnostics also hold
+    kernel_rebuilds and contact_rebuilds (T,), cumulative counts at each frame.
     """
 
     mesh: Mesh
@@ -125,7 +146,8 @@ def _positive(value, key: str, *, optional=False, integer=False):
 
 
 def _check_solver(s: dict) -> None:
-    for key, allowed in (("kernel", KERNELS), ("transfer", TRANSFERS), ("dtype", _DTYPES)):
+    for key, allowed in (("kernel", KERNELS), ("transfer", TRANSFERS), ("dtype", _DTYPES),
+                         ("reference", REFERENCES)):
         if s[key] not in allowed:
             choices = ", ".join(sorted(allowed))
             raise ConfigError(f"config key 'solver.{key}' must be one of {choices}, got {s[key]!r}")
@@ -136,6 +158,14 @@ def _check_solver(s: dict) -> None:
     _positive(s["grid_spacing"], "solver.grid_spacing", optional=True)
     _positive(s["layer_thickness"], "solver.layer_thickness")
     _positive(s["threads"], "solver.threads", optional=True, integer=True)
+    _positive(s["epsilon"], "solver.epsilon")
+    if not (_positive(s["fraction"], "solver.fraction") <= 1.0):
+        raise ConfigError(f"config key 'solver.fraction' must be in (0, 1], got {s['fraction']!r}")
+    margin = s["contact_margin"]
+    if margin is not None and (isinstance(margin, bool) or not isinstance(margin, (int, float))
+                               or not math.isfinite(margin) or margin < 0):
+        raise ConfigError(f"config key 'solver.contact_margin' must be a number >= 0 (cells) or null, "
+                          f"got {margin!r}")
     if not (_positive(s["cfl"], "solver.cfl") <= 1.0):
         raise ConfigError(f"config key 'solver.cfl' must be in (0, 1], got {s['cfl']!r}")
     if not isinstance(s["extra_layer"], bool):
@@ -189,9 +219,89 @@ def _background(scene: Scene, solver: dict, device, dtype):
     return tables, conditions, tables.nodes, domain.edge_length_stats.min
 
 
+def _plane(kind, friction, normal, offset, along: np.ndarray, reach: float, h: float, device, dtype) -> WallPlane:
+    """A WallPlane with unit outward ``normal``; along: (n, d) points spanning it."""
+    d = len(normal)
+    if d == 1:
+        tangents = np.zeros((0, 1))
+    elif d == 2:
+        tangents = np.array([[-normal[1], normal[0]]])
+    else:
+        helper = np.eye(3)[np.argmin(np.abs(normal))]
+        t1 = np.cross(normal, helper)
+        t1 /= np.linalg.norm(t1)
+        tangents = np.stack([t1, np.cross(normal, t1)])
+    coords = along @ tangents.T
+    as_t = lambda a: torch.as_tensor(np.asarray(a, float), dtype=dtype, device=device)  # noqa: E731
+    return WallPlane(kind=kind, friction=float(friction), normal=as_t(normal), offset=float(offset),
+                     tangents=as_t(tangents), lower=as_t(coords.min(0)), upper=as_t(coords.max(0)),
+                     depth=reach, margin=reach, tol=1e-6 * h)
+
+
+def wall_planes(scene: Scene, solver: dict, h: float, device, dtype) -> tuple[WallPlane, ...]:
+    """The scene's walls as flat pieces acting on moved node positions (total/adaptive modes).
+
+    Coplanar boundary facets of one wall form one piece; a node within the piece's extent
+    (plus the extra layer) that lies on or beyond it is on the wall.
+    """
+    reach = (solver["layer_thickness"] + 2.0) * h
+    domain = scene.domain
+    out = []
+    if solver["kernel"] == "bspline":
+        lower, upper = domain.nodes.min(0), domain.nodes.max(0)
+        for axis in range(scene.dim):
+            for sign, value in ((-1.0, lower[axis]), (1.0, upper[axis])):
+                normal = np.zeros(scene.dim)
+                normal[axis] = sign
+                corners = np.array([lower, upper], float)
+                corners[:, axis] = value
+                centre = corners.mean(0, keepdims=True)
+                for wall in scene.walls:
+                    if bool(np.asarray(wall.where(centre, normal[None]))[0]):
+                        out.append(_plane(wall.kind, wall.friction, normal, sign * value, corners, reach, h,
+                                          device, dtype))
+        return tuple(out)
+    facets, normals = domain.boundary_facets, domain.boundary_normals
+    points = domain.nodes[facets]  # (F, d, d)
+    centroids = points.mean(1)
+    offsets = (points[:, 0] * normals).sum(1)
+    for wall in scene.walls:
+        chosen = np.flatnonzero(np.asarray(wall.where(centroids, normals), dtype=bool))
+        if not len(chosen):
+            continue
+        keys = np.round(np.concatenate([normals[chosen], offsets[chosen, None] / h], 1), 6)
+        _, group = np.unique(keys, axis=0, return_inverse=True)
+        for g in np.unique(group):
+            members = chosen[group.ravel() == g]
+            normal = normals[members].mean(0)
+            normal /= np.linalg.norm(normal)
+            along = points[members].reshape(-1, scene.dim)
+            out.append(_plane(wall.kind, wall.friction, normal, float((along @ normal).mean()), along, reach, h,
+                              device, dtype))
+    return tuple(out)
+
+
+def _pinned(scene: Scene, solver: dict, background, device, dtype) -> tuple:
+    """The scene's clamps as index conditions (they hold nodes at rest, which then never move)."""
+    if not scene.clamps:
+        return ()
+    if isinstance(background, Grid):
+        lower, upper = scene.domain.nodes.min(0), scene.domain.nodes.max(0)
+        return tuple(grid_conditions(background, lower, upper, [], scene.clamps, device=device, dtype=dtype))
+    extended = with_extra_layer(scene.domain, solver["layer_thickness"]) if solver["extra_layer"] else None
+    return tuple(mesh_conditions(scene.domain, extended, [], scene.clamps, device=device, dtype=dtype))
+
+
 def build_model(scene: Scene, solver: dict) -> tuple[Model, State]:
     device, dtype = torch.device(solver["device"]), _DTYPES[solver["dtype"]]
     background, conditions, nodes, h_cfl = _background(scene, solver, device, dtype)
+    reference = {}
+    if solver["reference"] != "eulerian":
+        h = background.spacing if isinstance(background, Grid) else background.h
+        reference = {"wall_planes": wall_planes(scene, solver, h, device, dtype),
+                     "pinned": _pinned(scene, solver, background, device, dtype)}
+    grips = tuple(Grip(torch.as_tensor(ids, dtype=torch.int64, device=device), velocity)
+                  for ids, velocity in getattr(scene, "grips", ()))
     materials = tuple(
         (m, None if ids is None else torch.as_tensor(ids, dtype=torch.int64, device=device))
         for m, ids in scene.materials
@@ -200,7 +310,9 @@ def build_model(scene: Scene, solver: dict) -> tuple[Model, State]:
     model = Model(
         background=background, kernel=solver["kernel"], transfer=solver["transfer"], materials=materials,
         conditions=tuple(conditions), gravity=torch.as_tensor(gravity, dtype=dtype, device=device),
-        node_positions=nodes, h_cfl=float(h_cfl),
+        node_positions=nodes, h_cfl=float(h_cfl), reference=solver["reference"], epsilon=float(solver["epsilon"]),
+        fraction=float(solver["fraction"]), contact_margin=solver["contact_margin"], grips=grips,
+        damping=float(getattr(scene, "damping", 0.0)), **reference,
     )
     state = State.at_rest_shape(scene.x, scene.v, scene.volume, scene.density(), device=device, dtype=dtype)
     return model, state
@@ -219,8 +331,17 @@ def build_simulation(config) -> Simulation:
 
 
 # ----------------------------------------------------------------------------- run
-def _frame_record(sim: Simulation, state: State) -> dict:
+def _rebuild_counts(sim: Simulation, state: State, steps: int) -> tuple[int, int]:
+    """(kernel rebuilds, of which forced by the contact trigger) after ``steps`` steps."""
+    ref = state.reference
+    if sim.model.reference == "eulerian":
+        return steps, 0
+    return (0, 0) if ref is None else (ref.rebuilds, ref.contact_rebuilds)
+
+
+def _frame_record(sim: Simulation, state: State, steps: int) -> dict:
     out = {k: v.detach().cpu().numpy() for k, v in diagnostics(sim.model, state).items()}
+    out["kernel_rebuilds"], out["contact_rebuilds"] = (np.array(c) for c in _rebuild_counts(sim, state, steps))
     m = state.mass
     out["center_of_mass"] = ((m[:, None] * state.x).sum(0) / m.sum()).cpu().numpy()
     ids = torch.as_tensor(list(sim.scene.probes.values()), dtype=torch.int64, device=state.x.device)
@@ -246,7 +367,7 @@ def run(sim: Simulation) -> Trajectory:
         positions.append(s.x[tracked].cpu().numpy())
         velocities.append(s.v[tracked].cpu().numpy())
         times.append(s.time)
-        records.append(_frame_record(sim, s))
+        records.append(_frame_record(sim, s, s.step - sim.state.step))
 
     snapshot(state)
     frame_wall = [0.0]
@@ -268,7 +389,7 @@ def run(sim: Simulation) -> Trajectory:
         step_diagnostics=_stack(per_step) if per_step else None, frame_wall_times=np.array(frame_wall),
         node_type=sim.scene.node_type, body_id=sim.scene.body_id, obstacle_nodes=sim.scene.obstacle_nodes,
         obstacle_facets=sim.scene.obstacle_facets,
-        kernel_rebuilds=sim.substeps * frames,  # every step computes its kernel (no reference caching yet)
+        kernel_rebuilds=_rebuild_counts(sim, state, sim.substeps * frames)[0],
     )
 
 

@@ -23,16 +23,52 @@ output: {{frames: 6, frame_interval: 0.05}}
 """
 
 
-@pytest.fixture(scope="session")
-def tiny_dataset(tmp_path_factory):
-    """(dataset config path, data root) of a tiny glyphs dataset generated once per session."""
+TINY_DATASET_3D = """\
+extends: {base}
+dataset: tiny_balls
+splits: {{train: 2, valid: 1, test: 1}}
+ranges: {{count: 1}}
+output: {{frames: 4, frame_interval: 0.05}}
+"""
+
+
+def _tiny(tmp_path_factory, name: str, template: str, base: str):
     from pathlib import Path
 
     from datagen.generate import generate
 
-    folder = tmp_path_factory.mktemp("tiny_dataset")
-    base = Path(__file__).resolve().parents[1] / "configs" / "datasets" / "glyphs_quick.yaml"
-    config = folder / "tiny_glyphs.yaml"
-    config.write_text(TINY_DATASET.format(base=base))
+    folder = tmp_path_factory.mktemp(name)
+    config = folder / f"{name}.yaml"
+    config.write_text(template.format(base=Path(__file__).resolve().parents[1] / "configs" / "datasets" / base))
     generate(config, out=folder / "data", progress=False)
     return config, folder / "data"
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory):
+    """(dataset config path, data root) of a tiny glyphs dataset generated once per session."""
+    return _tiny(tmp_path_factory, "tiny_glyphs", TINY_DATASET, "glyphs_quick.yaml")
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset_3d(tmp_path_factory):
+    """(dataset config path, data root) of a tiny 3D balls dataset generated once per session."""
+    return _tiny(tmp_path_factory, "tiny_balls", TINY_DATASET_3D, "balls_quick.yaml")
+
+
+def tiny_run_config(tiny, runs, /, name: str = "tiny", **sections) -> dict:
+    """A training config dict on the tiny dataset ``tiny``: small model, few steps, no progress bars."""
+    dataset_config, data_root = tiny
+    config = {
+        "name": name, "runs": str(runs),
+        "dataset": {"config": str(dataset_config), "root": str(data_root), "generate": False},
+        "graph": {"levels": 3, "constants": ["log_E"]},
+        "noise": {"position": 2e-4, "velocity": 1e-3},
+        "model": {"name": "bsms_gnn", "latent": 32},
+        "optim": {"lr": 1e-3, "warmup": 3},
+        "train": {"steps": 12, "batch_size": 2, "normalizer_steps": 6, "log_every": 4, "valid_every": 6,
+                  "checkpoint_every": 6, "progress": False, "valid_samples": 4},
+    }
+    for section, values in sections.items():
+        config[section] = {**config.get(section, {}), **values} if isinstance(values, dict) else values
+    return config

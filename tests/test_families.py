@@ -15,10 +15,9 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "datasets"
 
 
 def _inside_box(traj, tol):
-    x0, y0, x1, y1 = traj.config["params"]["box"]
-    p = traj.positions
-    return (p[..., 0] >= x0 - tol).all() and (p[..., 0] <= x1 + tol).all() and \
-        (p[..., 1] >= y0 - tol).all() and (p[..., 1] <= y1 + tol).all()
+    box, d = traj.config["params"]["box"], traj.mesh.dim
+    lower, upper = np.asarray(box[:d]), np.asarray(box[d:])
+    return (traj.positions >= lower - tol).all() and (traj.positions <= upper + tol).all()
 
 
 def _inside_channel(traj, tol):
@@ -34,7 +33,7 @@ def _beside_clamp(traj, tol):
     return (traj.positions[..., 0] >= -tol).all() and (traj.positions[..., 1] >= -q["drop"] - tol).all()
 
 
-CONTAINED = {"disks": _inside_box, "glyphs": _inside_box, "wavy_channel": _inside_channel,
+CONTAINED = {"disks": _inside_box, "glyphs": _inside_box, "balls": _inside_box, "wavy_channel": _inside_channel,
              "cantilever": _beside_clamp}
 
 
@@ -105,7 +104,7 @@ def test_bad_ranges_name_the_key(ranges, message):
 
 
 def test_unknown_family_lists_the_choices():
-    with pytest.raises(ConfigError, match="unknown family 'disk'.*choose one of cantilever, disks, glyphs, wavy_channel"):
+    with pytest.raises(ConfigError, match="unknown family 'disk'.*choose one of balls, cantilever, disks, glyphs, wavy_channel"):
         get_family("disk")
 
 

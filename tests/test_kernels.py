@@ -61,8 +61,11 @@ def test_extra_layer_keeps_weights_nonnegative(gmsh_mesh):
     """UMLS §2.3.5: boundary cells without the layer give negative weights; the layer removes them.
 
     Strict (no weight below -1e-10) in every cell of the 2D meshes, corners included, and in
-    the interior cells of the 3D ones. In 3D boundary cells a few weights stay slightly
-    negative (about 1e-4, at nodes near the edge of the B-spline support): checked as such.
+    the interior cells of the 3D ones. In 3D boundary cells one layer cannot reach as far out
+    as the B-spline support reaches in (datagen/layer.py explains it): near convex creases and
+    curved faces a few far inner nodes keep weights down to about -2e-4, whatever the layer
+    thickness. This is the tightest bound we measured, not the property we want; the test pins
+    how small, how rare and where they are, so that any growth shows.
     """
     name, mesh = gmsh_mesh
     bare, layered = MeshTables.build(mesh), MeshTables.build(with_extra_layer(mesh))
@@ -71,12 +74,23 @@ def test_extra_layer_keeps_weights_nonnegative(gmsh_mesh):
     assert umls_kernel(layered, interior).weight.min() >= -1e-10
     edge = torch.tensor(_sample(mesh, np.flatnonzero(boundary), 10, seed=4))
     assert umls_kernel(bare, edge).weight.min() < -1e-2  # the degeneration the layer fixes (UMLS Fig. 5)
-    weights = umls_kernel(layered, edge).weight
+    k = umls_kernel(layered, edge)
     if mesh.dim == 2:
-        assert weights.min() >= -1e-10
-    else:
-        assert weights.min() >= -1e-3
-        assert (weights < -1e-10).any(dim=1).double().mean() < 0.005
+        assert k.weight.min() >= -1e-10
+        return
+    negative = (k.weight < -1e-10).any(dim=1).numpy()
+    assert k.weight.min() >= -5e-4
+    assert negative.mean() < 0.002
+    # the far inner nodes of the sample, never the nearby ones: each such weight is below 1% of
+    # the particle's largest weight
+    worst = torch.where(k.weight < -1e-10, -k.weight, 0.0).amax(dim=1)
+    assert (worst <= 0.01 * k.weight.amax(dim=1)).all()
+    x = edge.numpy()[negative]
+    if name == "box":  # within one element (0.15) of a crease: two walls closer than that
+        walls = np.sort(np.minimum(x, np.array([1.0, 0.8, 0.6]) - x), axis=1)
+        assert (walls[:, 1] < 0.15).all()
+    else:  # sphere (element size 0.3): within one element of the surface
+        assert (np.linalg.norm(x, axis=1) > 0.7).all()
 
 
 def test_identities_in_one_dimension_and_for_the_other_kernels():

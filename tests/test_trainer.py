@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import tiny_run_config
 from torch_geometric.data import Batch
 
 from bsms.checkpoint import CheckpointError, load_checkpoint, load_model
@@ -20,20 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def config_dict(tiny_dataset, runs, **sections) -> dict:
-    dataset_config, data_root = tiny_dataset
-    config = {
-        "name": "tiny", "runs": str(runs),
-        "dataset": {"config": str(dataset_config), "root": str(data_root), "generate": False},
-        "graph": {"levels": 3, "constants": ["log_E"]},
-        "noise": {"position": 2e-4, "velocity": 1e-3},
-        "model": {"name": "bsms_gnn", "latent": 32},
-        "optim": {"lr": 1e-3, "warmup": 3},
-        "train": {"steps": 12, "batch_size": 2, "normalizer_steps": 6, "log_every": 4, "valid_every": 6,
-                  "checkpoint_every": 6, "progress": False, "valid_samples": 4},
-    }
-    for section, values in sections.items():
-        config[section] = {**config.get(section, {}), **values} if isinstance(values, dict) else values
-    return config
+    return tiny_run_config(tiny_dataset, runs, **sections)
 
 
 @pytest.fixture(scope="module")
@@ -261,3 +249,14 @@ def test_train_py_reports_config_errors(tmp_path):
     assert result.returncode == 2
     assert result.stderr.strip() == ("error: config key 'model.name' must be one of 'bsms_gnn', 'meshgraphnets', "
                                      "got 'gcn'")
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "configs").glob("*.yaml")), ids=lambda p: p.stem)
+def test_shipped_training_configs_are_valid(path):
+    from datagen.generate import load_dataset_config
+
+    config = load_config(path)
+    dataset = load_dataset_config(ROOT / config.dataset.config)
+    assert config.graph.contact == (dataset["family"] != "cantilever")
+    for name in config.graph.constants:  # every constant is a scene parameter the family varies
+        assert name.removeprefix("log_") in dataset.get("ranges", {}) or name.removeprefix("log_") in dataset["params"]

@@ -28,13 +28,21 @@ OUTPUT = Path("docs/images")
 
 
 def draw_frame(axis, traj, frame: int) -> None:
-    """Body triangles at ``frame`` (coloured by body id) and the obstacle facets."""
+    """Body triangles at ``frame`` (coloured by body id) and the obstacle facets.
+
+    3D trajectories are seen from the front (x right, y up): the body's surface triangles and
+    the outline of the container.
+    """
     x = traj.positions[frame]
     body = np.zeros(len(x), int) if traj.body_id is None else traj.body_id
+    triangles = traj.mesh.boundary_facets if traj.mesh.dim == 3 else traj.mesh.cells
     for k in np.unique(body):
-        cells = traj.mesh.cells[body[traj.mesh.cells[:, 0]] == k]
+        cells = triangles[body[triangles[:, 0]] == k]
         axis.triplot(x[:, 0], x[:, 1], cells, color=plt.get_cmap("tab10")(k % 10), linewidth=0.3)
-    if traj.obstacle_nodes is not None and len(traj.obstacle_facets):
+    if traj.obstacle_nodes is not None and len(traj.obstacle_facets) and traj.mesh.dim == 3:
+        (x0, y0), (x1, y1) = traj.obstacle_nodes[:, :2].min(0), traj.obstacle_nodes[:, :2].max(0)
+        axis.plot([x0, x1, x1, x0, x0], [y0, y0, y1, y1, y0], color="k", linewidth=1.2)
+    elif traj.obstacle_nodes is not None and len(traj.obstacle_facets):
         axis.add_collection(LineCollection(traj.obstacle_nodes[traj.obstacle_facets], colors="k", linewidths=1.2))
     axis.set_title(f"t = {traj.times[frame]:.2f} s", fontsize=9)
     axis.set_aspect("equal")

@@ -12,7 +12,9 @@ import numpy as np
 
 from ..scenes import ConfigError
 
-__all__ = ["check_ranges", "uniform", "log_uniform", "integer", "choice", "place_disjoint"]
+__all__ = [
+    "check_ranges", "uniform", "log_uniform", "integer", "choice", "place_disjoint", "midpoint", "log_midpoint",
+]
 
 
 def check_ranges(family: str, defaults: dict, given: dict) -> dict:
@@ -46,6 +48,20 @@ def log_uniform(ranges: dict, key: str, rng: np.random.Generator) -> float:
     if low <= 0:
         raise ConfigError(f"ranges.{key} must be positive (it is sampled in log scale), got {ranges[key]!r}")
     return float(math.exp(rng.uniform(math.log(low), math.log(high))))
+
+
+def midpoint(ranges: dict, key: str) -> float:
+    """The middle of a uniform range (the value itself when fixed)."""
+    low, high = _bounds(ranges, key)
+    return 0.5 * (low + high)
+
+
+def log_midpoint(ranges: dict, key: str) -> float:
+    """The middle in log scale (geometric mean) of a range sampled by :func:`log_uniform`."""
+    low, high = _bounds(ranges, key)
+    if low <= 0:
+        raise ConfigError(f"ranges.{key} must be positive (it is sampled in log scale), got {ranges[key]!r}")
+    return math.sqrt(low * high)
 
 
 def integer(ranges: dict, key: str, rng: np.random.Generator) -> int:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..scenes import ConfigError
 from .base import check_ranges, log_uniform, uniform
 
 NAME = "cantilever"
@@ -26,3 +27,10 @@ def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
         "length": length, "height": uniform(r, "height", rng), "E": log_uniform(r, "E", rng),
         "density": uniform(r, "density", rng), "rotation": uniform(r, "rotation", rng), "drop": 0.5 * length,
     }
+
+
+def place(meshes, dconfig, overrides: dict | None = None) -> dict:
+    """Not supported: a clamped beam has no free body to swap; raises ConfigError saying what to use instead."""
+    raise ConfigError(f"zero-shot placement is not supported for family {NAME}: its body is a beam clamped to a "
+                      "wall, which an arbitrary mesh has no part to clamp by; to drop your own mesh into a box use "
+                      "family glyphs or disks (2D) or balls (3D)")

@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 
-from .base import check_ranges, integer, log_uniform, place_disjoint, uniform
+from .base import check_ranges, integer, log_midpoint, log_uniform, midpoint, place_disjoint, uniform
+from .placement import bodies_config, row_centers, toward_axis
 
 NAME = "disks"
 SCENE = "disks"
@@ -31,3 +32,23 @@ def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
         "radii": radii, "centers": centers.tolist(), "velocities": velocities, "box": box,
         "E": log_uniform(r, "E", rng), "density": uniform(r, "density", rng),
     }
+
+
+def place(meshes, dconfig, overrides: dict | None = None) -> dict:
+    """A ``bodies`` config putting ``meshes`` (2D) into this family's box to collide.
+
+    Each mesh is scaled so its largest extent is the mid-range disk diameter (at most 0.8 of
+    its column); one column each across the box at mid-height; every body moves at the
+    mid-range speed towards the box centre (a body at the centre moves along +x). E (log
+    scale) and density are mid-range. ``overrides`` replace any of these bodies scene parameters.
+    """
+    def choose(r: dict, n: int) -> dict:
+        r = check_ranges(NAME, RANGES, r)
+        lower, upper = np.asarray(r["box"][:2], float), np.asarray(r["box"][2:], float)
+        size = min(2 * midpoint(r, "radius"), 0.8 * (upper[0] - lower[0]) / n, 0.8 * (upper[1] - lower[1]))
+        centers = row_centers(n, lower, upper)
+        velocities = toward_axis(centers, (lower + upper) / 2, midpoint(r, "speed"))
+        return {"box": [float(v) for v in r["box"]], "centers": centers.tolist(), "sizes": [size] * n,
+                "velocities": velocities.tolist(), "E": log_midpoint(r, "E"), "density": midpoint(r, "density")}
+
+    return bodies_config(NAME, DIM, meshes, dconfig, overrides, choose)

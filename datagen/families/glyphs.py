@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..scenes import ConfigError
-from .base import check_ranges, integer, log_uniform, uniform
+from .base import check_ranges, integer, log_midpoint, log_uniform, midpoint, uniform
+from .placement import bodies_config, row_centers
 
 NAME = "glyphs"
 SCENE = "glyphs"
@@ -48,3 +49,23 @@ def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
         "velocities": [[uniform(r, "speed_x", rng), uniform(r, "speed_y", rng)] for _ in range(n)],
         "box": [x0, y0, x1, y1], "E": log_uniform(r, "E", rng), "density": uniform(r, "density", rng),
     }
+
+
+def place(meshes, dconfig, overrides: dict | None = None) -> dict:
+    """A ``bodies`` config dropping ``meshes`` (2D) into this family's box like its letters.
+
+    Each mesh is scaled so its largest extent is the mid-range letter height (capped as the
+    sampler caps it: 0.8 of a column, 0.4 of the box height); one column each across the box,
+    at the middle of the sampler's height range; mid-range velocity, E (log scale) and
+    density. ``overrides`` replace any of these bodies scene parameters.
+    """
+    def choose(r: dict, n: int) -> dict:
+        r = check_ranges(NAME, RANGES, r)
+        x0, y0, x1, y1 = (float(v) for v in r["box"])
+        size = min(midpoint(r, "height"), 0.8 * (x1 - x0) / n, 0.4 * (y1 - y0))
+        centers = row_centers(n, [x0, y0 + 0.5 * (y1 - y0)], [x1, y1 - 0.6 * size])
+        velocity = [midpoint(r, "speed_x"), midpoint(r, "speed_y")]
+        return {"box": [x0, y0, x1, y1], "centers": centers.tolist(), "sizes": [size] * n,
+                "velocities": [velocity] * n, "E": log_midpoint(r, "E"), "density": midpoint(r, "density")}
+
+    return bodies_config(NAME, DIM, meshes, dconfig, overrides, choose)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..scenes import ConfigError
 from .base import check_ranges, choice, log_uniform, uniform
 
 NAME = "wavy_channel"
@@ -28,3 +29,10 @@ def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
     }
 
 
+
+
+def place(meshes, dconfig, overrides: dict | None = None) -> dict:
+    """Not supported: the channel scene builds its own body; raises ConfigError saying what to use instead."""
+    raise ConfigError(f"zero-shot placement is not supported for family {NAME}: its scene meshes its own body "
+                      "(params.shape: disk, square, ring or 'glyph:<text>'); to drop your own mesh into a box use "
+                      "family glyphs or disks (2D) or balls (3D)")

@@ -5,6 +5,9 @@ Each material gives, for deformation gradients ``F: (P, d, d)``, the Kirchhoff s
 UMLS eq. 10 with V_p = J V_p^0), the first Piola-Kirchhoff stress ``P`` and the strain energy
 density ``psi`` per unit reference volume. Lamé parameters follow from (E, nu) with the 3D
 formulas in every dimension (plane strain in 2D; in 1D exact only for nu = 0).
+
+:class:`WeaklyCompressibleFluid` has no shear stiffness: a pressure from J (Tait equation of
+state) and an optional Newtonian viscosity, which the solver adds from the velocity gradient.
 """
 
 from __future__ import annotations
@@ -17,7 +20,10 @@ import torch
 
 from . import linalg
 
-__all__ = ["Material", "LinearElastic", "NeoHookean", "FixedCorotated", "MATERIALS", "rotation_part"]
+__all__ = [
+    "Material", "LinearElastic", "NeoHookean", "FixedCorotated", "WeaklyCompressibleFluid", "MATERIALS",
+    "rotation_part",
+]
 
 _POLAR_ITERATIONS = 12
 
@@ -61,6 +67,11 @@ class Material(ABC):
     def first_piola(self, F: torch.Tensor) -> torch.Tensor:
         """P = tau F^-T."""
         return self.kirchhoff(F) @ linalg.inv_transpose(F)
+
+    @property
+    def viscosity(self) -> float:
+        """Dynamic viscosity (Pa s) of the viscous stress the solver adds; 0 for elastic solids."""
+        return 0.0
 
 
 def _trace(a: torch.Tensor) -> torch.Tensor:
@@ -140,5 +151,57 @@ class FixedCorotated(Material):
         return self.mu * ((F - R) ** 2).sum((-1, -2)) + 0.5 * self.lam * (J - 1.0) ** 2
 
 
-MATERIALS = {"linear": LinearElastic, "neo_hookean": NeoHookean, "fixed_corotated": FixedCorotated}
+@dataclass(frozen=True)
+class WeaklyCompressibleFluid(Material):
+    """Weakly compressible fluid: pressure from J by the Tait equation of state, no shear stiffness.
+
+    The stiffness is given like a solid's: bulk modulus K = E / (3 (1 - 2 nu)) (so a fluid and a
+    solid built from the same E, nu resist compression alike). p(J) = K / gamma (J^-gamma - 1)
+    (gamma = 1: p = K (1/J - 1)), psi(J) = -int_1^J p, tau = J sigma = -p J I. ``viscosity``:
+    dynamic viscosity eta; the solver adds tau_visc = J eta (L + L^T) from the velocity gradient L.
+    """
+
+    gamma: float = 7.0
+    fluid_viscosity: float = 0.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not (self.gamma >= 1.0 and self.fluid_viscosity >= 0.0):
+            raise ValueError(f"WeaklyCompressibleFluid needs gamma >= 1 and viscosity >= 0; "
+                             f"got gamma={self.gamma}, viscosity={self.fluid_viscosity}")
+
+    @property
+    def bulk(self) -> float:
+        return self.E / (3.0 * (1.0 - 2.0 * self.nu))
+
+    @property
+    def viscosity(self) -> float:
+        return self.fluid_viscosity
+
+    @property
+    def wave_speed(self) -> float:
+        """Sound speed at rest, sqrt(K / rho)."""
+        return math.sqrt(self.bulk / self.density)
+
+    def pressure(self, J: torch.Tensor) -> torch.Tensor:
+        if self.gamma == 1.0:
+            return self.bulk * (1.0 / J - 1.0)
+        return self.bulk / self.gamma * (J.pow(-self.gamma) - 1.0)
+
+    def kirchhoff(self, F):
+        J = linalg.det(F)
+        return (-self.pressure(J) * J)[..., None, None] * linalg.identity_like(F)
+
+    def energy_density(self, F):
+        J = linalg.det(F)
+        if self.gamma == 1.0:
+            return self.bulk * ((J - 1.0) - torch.log(J))
+        g = self.gamma
+        return self.bulk / g * ((J - 1.0) + (J.pow(1.0 - g) - 1.0) / (g - 1.0))
+
+
+MATERIALS = {
+    "linear": LinearElastic, "neo_hookean": NeoHookean, "fixed_corotated": FixedCorotated,
+    "fluid": WeaklyCompressibleFluid,
+}
 """Config name -> material class."""

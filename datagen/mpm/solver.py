@@ -5,12 +5,40 @@ One step: the kernel of every particle is computed by one call (:func:`compute_k
 whose result a caller may cache and pass back in), P2G scatters mass, momentum and internal
 force in one pass, nodal velocities are integrated and constrained, and G2P updates
 particle velocities (FLIP, PIC, APIC or FLIP with MUSL), positions and deformation gradients.
+
+Reference configuration (A-ULMPM §3.4, §5, App. B). ``Model.reference`` chooses where kernels
+and their gradients are evaluated:
+
+- ``eulerian`` (s = n): the kernel is recomputed at the current positions every step (the
+  classic updated-Lagrangian MPM; this path is the plain UMLS solver, unchanged).
+- ``total`` (s = 0): the kernel of the initial positions is kept for the whole run.
+- ``adaptive``: the kernel of configuration s is kept until an update is triggered, by the
+  A-ULMPM eq. 33 criterion (the fraction of particles with |det F^{s,n+1} - 1| >= epsilon
+  reaches ``fraction``) or by the contact trigger (below).
+
+Between updates particles carry F^{0s} and F^{sn} (:class:`Reference`), F = F^{sn} F^{0s}; the
+nodal force is f_i = -sum_p V_p^0 P(F_p) (F_p^{0s})^T grad_s w_ip (App. B eq. 44), computed as
+tau_p (F_p^{sn})^-T grad_s w_ip with tau = P F^T; F^{sn} <- F^{sn} + dt grad_s v_p (eqs. 45-47).
+The background nodes move with their velocities, q_i <- q_i + dt v_i, and walls act on those
+moved positions (:class:`WallPlane`). An update sets F^{0s} <- F, F^{sn} <- I and rebuilds the
+kernel at the particles' current positions in the undeformed background.
+
+Contact trigger (``contact_margin``, adaptive only). Between updates two bodies only interact
+through background nodes they share at s, so bodies that approach each other would pass
+through one another. At each update the active nodes are split into clusters (connected through
+shared particles) and the gap between every pair of clusters is measured. Between updates
+D_c = max |q_i - q_i^s| over the nodes of cluster c bounds how far it moved; an update is
+forced when D_a + D_b >= gap_ab - contact_margin * h for some pair (h the background cell
+size). A single body in free rigid motion has one cluster and never triggers; walls need no
+trigger because they act on the moved node positions.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 
 from . import linalg
@@ -21,9 +49,13 @@ from .materials import Material
 
 __all__ = [
     "Model", "State", "SimulationError", "step", "compute_kernel", "cfl_time_step", "diagnostics",
-    "kirchhoff_stress", "KERNELS", "TRANSFERS",
+    "kirchhoff_stress", "KERNELS", "TRANSFERS", "REFERENCES", "Reference", "WallPlane", "Grip",
+    "kernel_rebuilds",
 ]
 
+REFERENCES = ("eulerian", "total", "adaptive")
+
+_CLUSTER_WEIGHT = 0.05  # particles join the clusters of nodes they weigh at least this much
 _MASS_FLOOR = 1e-10  # nodes lighter than this fraction of the mean particle mass are treated as empty
 
 
@@ -40,6 +72,14 @@ class Model:
     update-stress-last strain, for the linear hat). materials: (material, particle ids or None
     for all) pairs. conditions: boundary conditions applied in order. gravity: (d,).
     node_positions: (N, d). h_cfl: the length used by the CFL condition.
+
+    Reference configuration (see the module doc): reference 'eulerian' | 'total' |
+    'adaptive'; epsilon, fraction: the eq. 33 criterion; contact_margin: the contact trigger
+    in cells (None: off). wall_planes: the walls as :class:`WallPlane` pieces, applied to the
+    moved node positions in the total/adaptive modes (None: apply ``conditions`` by node index
+    there too, right only while no node near a wall moves); pinned: index conditions that hold
+    in every mode (clamps). grips: :class:`Grip` particle sets moved as prescribed. damping:
+    mass-proportional damping rate (1/s) of the nodal velocities.
     """
 
     background: MeshTables | Grid
@@ -50,8 +90,23 @@ class Model:
     gravity: torch.Tensor
     node_positions: torch.Tensor
     h_cfl: float
+    reference: str = "eulerian"
+    epsilon: float = 0.01
+    fraction: float = 0.01
+    contact_margin: float | None = 1.0
+    wall_planes: tuple | None = None
+    pinned: tuple = ()
+    grips: tuple = ()
+    damping: float = 0.0
 
     def __post_init__(self):
+        if self.reference not in REFERENCES:
+            raise ValueError(f"unknown reference {self.reference!r}; choose one of {list(REFERENCES)}")
+        if not (self.epsilon > 0 and 0 < self.fraction <= 1):
+            raise ValueError(f"reference criterion needs epsilon > 0 and 0 < fraction <= 1, "
+                             f"got {self.epsilon}, {self.fraction}")
+        if self.contact_margin is not None and not self.contact_margin >= 0:
+            raise ValueError(f"contact_margin must be >= 0 or None, got {self.contact_margin}")
         if self.kernel not in KERNELS:
             raise ValueError(f"unknown kernel {self.kernel!r}; choose one of {sorted(KERNELS)}")
         if self.transfer not in TRANSFERS:
@@ -71,6 +126,100 @@ class Model:
     def wave_speed(self) -> float:
         return max(m.wave_speed for m, _ in self.materials)
 
+    @property
+    def cell_size(self) -> float:
+        """The background's cell size: the B-spline length h of a mesh, the spacing of a grid."""
+        return self.background.spacing if isinstance(self.background, Grid) else self.background.h
+
+    @property
+    def viscous(self) -> bool:
+        return any(getattr(m, "viscosity", 0.0) > 0 for m, _ in self.materials)
+
+
+@dataclass(frozen=True, eq=False)
+class WallPlane:
+    """A flat piece of wall that acts on background nodes at their current (moved) positions.
+
+    A node at q is on the wall when -tol <= n.q - offset <= depth and its tangential
+    coordinates t.q lie in [lower - margin, upper + margin]. kind: 'sticky' | 'slip' |
+    'separating'; normal: (d,) unit outward; tangents: (d-1, d); lower, upper: (d-1,).
+    """
+
+    kind: str
+    friction: float
+    normal: torch.Tensor
+    offset: float
+    tangents: torch.Tensor
+    lower: torch.Tensor
+    upper: torch.Tensor
+    depth: float
+    margin: float
+    tol: float
+
+    def members(self, q: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: nodes at q (d, N) on this wall piece."""
+        height = self.normal @ q - self.offset
+        inside = (height >= -self.tol) & (height <= self.depth)
+        if self.tangents.shape[0]:
+            along = self.tangents @ q  # (d-1, N)
+            inside &= ((along >= self.lower[:, None] - self.margin)
+                       & (along <= self.upper[:, None] + self.margin)).all(0)
+        return inside
+
+    def apply(self, v: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """Constrain nodal velocities v (d, N) of the nodes at q (d, N) on this piece (in place)."""
+        mask = self.members(q)
+        if not bool(mask.any()):
+            return v
+        vi = v[:, mask]
+        n = self.normal[:, None]
+        vn = (vi * n).sum(0)
+        if self.kind == "sticky":
+            v[:, mask] = 0.0
+        elif self.kind == "slip":
+            v[:, mask] = vi - vn * n
+        else:
+            tangential = vi - vn * n
+            speed = tangential.norm(dim=0)
+            scale = torch.clamp(1.0 - self.friction * vn / torch.clamp(speed, min=1e-300), min=0.0)
+            v[:, mask] = torch.where(vn > 0, scale * tangential, vi)
+        return v
+
+
+@dataclass(frozen=True, eq=False)
+class Grip:
+    """Particles moved as prescribed: velocity(t) -> (d,) sequence, or None once released.
+
+    While held, every node the grip's particles touch takes the grip velocity, and the grip's
+    particles move with it exactly. ids: (n,) int64 particle indices.
+    """
+
+    ids: torch.Tensor
+    velocity: Callable[[float], object]
+
+
+@dataclass(frozen=True, eq=False)
+class Reference:
+    """The reference configuration s of the total/adaptive modes.
+
+    kernel: the kernel at the particles' positions at s.
+    F0s, Fsn: (P, d, d) F^{0s} and F^{sn}. nodes: (d, N) moved node positions q_i (q_i^s = the
+    background's nodes). active: the nodes in the kernel's support. rebuilds: kernels computed
+    so far; contact_rebuilds: how many of them the contact trigger forced. cluster: (N,) cluster
+    of each active node (-1: inactive); gaps: (C, C) gap between clusters at s (inf on the diagonal).
+    """
+
+    kernel: KernelResult | None
+    F0s: torch.Tensor
+    Fsn: torch.Tensor
+    nodes: torch.Tensor
+    rebuilds: int = 0
+    contact_rebuilds: int = 0
+    active: torch.Tensor | None = None
+    cluster: torch.Tensor | None = None
+    gaps: torch.Tensor | None = None
+    stale: str = ""  # why the next step rebuilds: "strain" or "contact"; "" while current
+
 
 @dataclass(frozen=True)
 class State:
@@ -78,7 +227,9 @@ class State:
 
     x, v: (P, d); F: (P, d, d) deformation gradient; affine: (P, d, d) APIC matrix B_p (zero
     for FLIP/PIC); volume0, mass: (P,); cell: (P,) last containing cell (-1 unknown), a hint
-    for the cell search; time; step.
+    for the cell search; time; step. reference: the :class:`Reference` of the total/adaptive
+    modes (None in eulerian mode or before the first step). velocity_gradient: (P, d, d) the
+    last step's grad v in the current configuration, kept only for viscous materials.
     """
 
     x: torch.Tensor
@@ -90,6 +241,8 @@ class State:
     cell: torch.Tensor
     time: float = 0.0
     step: int = 0
+    reference: Reference | None = None
+    velocity_gradient: torch.Tensor | None = None
 
     @classmethod
     def at_rest_shape(cls, x, v, volume0, density, *, device="cpu", dtype=torch.float64) -> State:
@@ -131,6 +284,24 @@ def kirchhoff_stress(model: Model, F: torch.Tensor) -> torch.Tensor:
     return tau
 
 
+def _force_stress(model: Model, state: State) -> torch.Tensor:
+    """(P, d, d) the stress the nodal force needs: tau (eulerian), tau (F^{sn})^-T = P (F^{0s})^T
+    in a reference configuration (A-ULMPM App. B eq. 44), plus the viscous Kirchhoff stress."""
+    tau = kirchhoff_stress(model, state.F)
+    if state.velocity_gradient is not None:
+        L = state.velocity_gradient
+        J = linalg.det(state.F)
+        for material, ids in model.materials:
+            eta = getattr(material, "viscosity", 0.0)
+            if eta > 0:
+                sel = slice(None) if ids is None else ids
+                rate = L[sel] + L[sel].transpose(-1, -2)
+                tau[sel] = tau[sel] + (eta * J[sel])[:, None, None] * rate
+    if state.reference is not None:
+        tau = tau @ linalg.inv_transpose(state.reference.Fsn)
+    return tau
+
+
 def elastic_energy(model: Model, state: State) -> torch.Tensor:
     """Total strain energy sum_p V_p^0 psi(F_p)."""
     total = state.x.new_zeros(())
@@ -168,11 +339,12 @@ def _p2g(model: Model, state: State, k: KernelResult, velocity: torch.Tensor) ->
     """Scatter [m_i, m_i v_i, f_int_i] -> (1+2d, N) (UMLS Alg. 1 lines 2-3, eqs. 9-10).
 
     velocity: (d, P, K) or (d, P, 1), the particle velocity seen by each node.
-    f_int_i = -sum_p V_p^0 tau_p grad w_ip with tau = J sigma the Kirchhoff stress.
+    f_int_i = -sum_p V_p^0 tau_p grad w_ip with tau = J sigma the Kirchhoff stress (in a
+    reference configuration: tau_p (F_p^{sn})^-T grad_s w_ip, see :func:`_force_stress`).
     """
     d = model.dim
     wm = k.weight * state.mass[:, None]
-    coef = kirchhoff_stress(model, state.F) * (-state.volume0[:, None, None])
+    coef = _force_stress(model, state) * (-state.volume0[:, None, None])
     g = k.grad_axes
     values = wm.new_empty((1 + 2 * d,) + wm.shape)
     values[0] = wm
@@ -210,6 +382,20 @@ class Nodal:
     v_new: torch.Tensor
 
 
+def constrain(model: Model, state: State, v: torch.Tensor) -> torch.Tensor:
+    """Boundary conditions on nodal velocities v (d, N), in place: by node index in eulerian
+    mode; on the moved node positions (wall planes) plus the pinned nodes otherwise."""
+    ref = state.reference
+    if ref is None or model.wall_planes is None:
+        return apply_conditions(v, model.conditions)
+    if model.wall_planes:  # only nodes inside the kernel's support carry velocity
+        sub, q = v[:, ref.active], ref.nodes[:, ref.active]
+        for plane in model.wall_planes:
+            sub = plane.apply(sub, q)
+        v[:, ref.active] = sub
+    return apply_conditions(v, model.pinned)
+
+
 def grid_update(model: Model, state: State, nodal: torch.Tensor, dt: float) -> Nodal:
     """Nodal velocities before and after the update, constrained (UMLS eq. 13, Alg. 1 l. 6)."""
     d = model.dim
@@ -219,13 +405,30 @@ def grid_update(model: Model, state: State, nodal: torch.Tensor, dt: float) -> N
     v = torch.where(active, momentum / safe, 0.0)
     accel = force / safe + model.gravity[:, None]  # gravity: f_ext = m_i g (UMLS eq. 11)
     v_new = torch.where(active, v + dt * accel, 0.0)
-    return Nodal(mass=torch.where(active, mass, 0.0), v=v, v_new=apply_conditions(v_new, model.conditions))
+    if model.damping:
+        v_new = v_new / (1.0 + model.damping * dt)
+    return Nodal(mass=torch.where(active, mass, 0.0), v=v, v_new=constrain(model, state, v_new))
 
 
-def _deform(F: torch.Tensor, k: KernelResult, v_slots: torch.Tensor, dt: float) -> torch.Tensor:
-    """F <- (I + dt sum_i v_i grad w_ip^T) F (UMLS eq. 17); v_slots: (d, P, K)."""
+def _deformed(model: Model, state: State, k: KernelResult, v_slots: torch.Tensor, dt: float) -> dict:
+    """The updated deformation fields of ``state``; v_slots: (d, P, K) new nodal velocities.
+
+    Eulerian: F <- (I + dt sum_i v_i grad w_ip^T) F (UMLS eq. 17). In a reference
+    configuration: F^{sn} <- F^{sn} + dt grad_s v_p with grad_s v_p = sum_i v_i grad_s w_ip^T
+    (A-ULMPM eqs. 45-47), and F = F^{sn} F^{0s} (eq. 32).
+    """
     grad_v = torch.bmm(v_slots.permute(1, 0, 2), k.grad_axes.permute(1, 2, 0))
-    return F + dt * torch.bmm(grad_v, F)
+    ref = state.reference
+    if ref is None:
+        out = {"F": state.F + dt * torch.bmm(grad_v, state.F)}
+        current = grad_v
+    else:
+        Fsn = ref.Fsn + dt * grad_v
+        out = {"F": torch.bmm(Fsn, ref.F0s), "reference": replace(ref, Fsn=Fsn)}
+        current = grad_v @ linalg.inv(ref.Fsn) if model.viscous else None  # grad_x v = grad_s v (F^{sn})^-1
+    if model.viscous:
+        out["velocity_gradient"] = current
+    return out
 
 
 def g2p_flip(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float) -> State:
@@ -234,14 +437,14 @@ def g2p_flip(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float
     slots = _gather(k, torch.cat([grid.v_new, grid.v_new - grid.v]))
     moved_dv = _interpolate(k, slots)
     x = state.x + dt * moved_dv[:, :d]
-    return replace(state, x=x, v=state.v + moved_dv[:, d:], F=_deform(state.F, k, slots[:d], dt))
+    return replace(state, x=x, v=state.v + moved_dv[:, d:], **_deformed(model, state, k, slots[:d], dt))
 
 
 def g2p_pic(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float) -> State:
     """PIC: v_p = sum w v~_i."""
     vi = _gather(k, grid.v_new)
     v = _interpolate(k, vi)
-    return replace(state, x=state.x + dt * v, v=v, F=_deform(state.F, k, vi, dt))
+    return replace(state, x=state.x + dt * v, v=v, **_deformed(model, state, k, vi, dt))
 
 
 def g2p_apic(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float) -> State:
@@ -249,7 +452,7 @@ def g2p_apic(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float
     vi = _gather(k, grid.v_new)
     v = _interpolate(k, vi)
     B = _moment(k, vi, k.offset_axes)
-    return replace(state, x=state.x + dt * v, v=v, F=_deform(state.F, k, vi, dt), affine=B)
+    return replace(state, x=state.x + dt * v, v=v, affine=B, **_deformed(model, state, k, vi, dt))
 
 
 def g2p_musl(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float) -> State:
@@ -261,8 +464,8 @@ def g2p_musl(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float
     momentum = _scatter(k, torch.stack([wm * new.v[:, a, None] for a in range(model.dim)]), model.n_nodes)
     active = grid.mass > 0
     v_map = torch.where(active, momentum / torch.where(active, grid.mass, 1.0), 0.0)
-    v_map = apply_conditions(v_map, model.conditions)
-    return replace(new, F=_deform(state.F, k, _gather(k, v_map), dt))
+    v_map = constrain(model, state, v_map)
+    return replace(new, **_deformed(model, state, k, _gather(k, v_map), dt))
 
 
 TRANSFERS = {
@@ -302,16 +505,179 @@ def step(model: Model, state: State, dt: float, kernel: KernelResult | None = No
 
     Raises SimulationError naming the step if particles are outside the background or the
     new state is not finite.
+
+    In the total/adaptive reference modes ``kernel`` is ignored: the cached kernel of the
+    reference configuration (state.reference) is used and rebuilt when the mode says so.
     """
+    if model.reference != "eulerian":
+        return _step_reference(model, state, dt)
     k = kernel if kernel is not None else compute_kernel(model, state.x, state.cell)
     if k.n_lost:
         raise _lost_error(model, state, k, dt)
     p2g, g2p = TRANSFERS[model.transfer]
-    new = g2p(model, state, k, grid_update(model, state, p2g(model, state, k), dt), dt)
-    if not bool(torch.isfinite(new.x.sum() + new.v.sum() + new.F.sum())):
-        raise SimulationError(_advice(model, state, dt, "the state became non-finite (NaN or inf)"))
+    grid = grid_update(model, state, p2g(model, state, k), dt)
+    if model.grips:
+        grid = _hold_grips(model, state, k, grid)
+    new = g2p(model, state, k, grid, dt)
+    if model.grips:
+        new = _move_grips(model, state, new, dt)
+    _check_finite(model, state, new, dt)
     cell = k.cell if k.cell is not None else state.cell
     return replace(new, cell=cell, time=state.time + dt, step=state.step + 1)
+
+
+def _check_finite(model: Model, state: State, new: State, dt: float) -> None:
+    if not bool(torch.isfinite(new.x.sum() + new.v.sum() + new.F.sum())):
+        raise SimulationError(_advice(model, state, dt, "the state became non-finite (NaN or inf)"))
+
+
+# ----------------------------------------------------------------------------- grips
+def _held(model: Model, state: State):
+    for grip in model.grips:
+        velocity = grip.velocity(state.time)
+        if velocity is not None:
+            yield grip, torch.as_tensor(velocity, dtype=state.x.dtype, device=state.x.device)
+
+
+def _hold_grips(model: Model, state: State, k: KernelResult, grid: Nodal) -> Nodal:
+    """Every node a held grip's particles touch takes the grip velocity."""
+    held = list(_held(model, state))
+    if not held:
+        return grid
+    v_new = grid.v_new.clone()
+    for grip, velocity in held:
+        index = k.index[grip.ids]
+        nodes = torch.unique(index[index >= 0])
+        v_new[:, nodes] = velocity[:, None]
+    return replace(grid, v_new=v_new)
+
+
+def _move_grips(model: Model, state: State, new: State, dt: float) -> State:
+    """Held grip particles move exactly with their grip."""
+    held = list(_held(model, state))
+    if not held:
+        return new
+    x, v = new.x.clone(), new.v.clone()
+    for grip, velocity in held:
+        v[grip.ids] = velocity
+        x[grip.ids] = state.x[grip.ids] + dt * velocity
+    return replace(new, x=x, v=v)
+
+
+# ----------------------------------------------------------------------------- reference configuration
+def kernel_rebuilds(state: State) -> int | None:
+    """Kernels computed so far in a total/adaptive run (None for eulerian states: one per step)."""
+    return None if state.reference is None else state.reference.rebuilds
+
+
+def _clusters(model: Model, k: KernelResult) -> tuple[torch.Tensor, torch.Tensor]:
+    """Clusters of active nodes (connected through shared particles) and their gaps at s.
+
+    A particle links only the nodes it weighs >= _CLUSTER_WEIGHT: the far, faint ring nodes
+    two bodies may share cells apart carry no real contact, and must not merge their clusters.
+
+    Gaps are exact up to ``reach = (contact_margin + 4) h``; farther pairs get ``reach``,
+    a lower bound, so the trigger stays conservative.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n_nodes, h = model.n_nodes, model.cell_size
+    index = k.index.cpu().numpy()
+    rows, cols = np.nonzero((index >= 0) & (k.weight.abs().cpu().numpy() >= _CLUSTER_WEIGHT))
+    nodes = index[rows, cols]
+    n_p = index.shape[0]
+    graph = sp.coo_matrix((np.ones(len(nodes)), (rows, n_p + nodes)), shape=(n_p + n_nodes,) * 2)
+    _, labels = connected_components(graph, directed=False)
+    active = np.unique(nodes)
+    if not len(active):
+        return torch.full((n_nodes,), -1, device=model.node_positions.device), None
+    _, cluster_of_active = np.unique(labels[n_p + active], return_inverse=True)
+    cluster = np.full(n_nodes, -1, dtype=np.int64)
+    cluster[active] = cluster_of_active
+    n_clusters = int(cluster_of_active.max()) + 1 if len(active) else 0
+    reach = (model.contact_margin + 4.0) * h
+    gaps = np.full((n_clusters, n_clusters), reach)
+    np.fill_diagonal(gaps, np.inf)
+    if n_clusters > 1:
+        points = model.node_positions.cpu().numpy()[active]
+        pairs = cKDTree(points).query_pairs(reach, output_type="ndarray")
+        a, b = cluster_of_active[pairs[:, 0]], cluster_of_active[pairs[:, 1]]
+        apart = a != b
+        dist = np.linalg.norm(points[pairs[apart, 0]] - points[pairs[apart, 1]], axis=1)
+        np.minimum.at(gaps, (a[apart], b[apart]), dist)
+        np.minimum.at(gaps, (b[apart], a[apart]), dist)
+    device = model.node_positions.device
+    return (torch.as_tensor(cluster, device=device),
+            torch.as_tensor(gaps, dtype=model.node_positions.dtype, device=device))
+
+
+def _apic_to_new_reference(state: State, old: Reference, k: KernelResult) -> torch.Tensor:
+    """B such that B D_new^-1 = B_old D_old^-1 (F^{sn})^-1: the same velocity gradient, now
+    measured in the new configuration (D = sum w r r^T, the APIC inertia)."""
+    C = state.affine @ linalg.inv(_moment(old.kernel, old.kernel.offset_axes, old.kernel.offset_axes))
+    return C @ linalg.inv(old.Fsn) @ _moment(k, k.offset_axes, k.offset_axes)
+
+
+def _rebuild(model: Model, state: State, dt: float, contact: bool = False) -> State:
+    """Make the current configuration the reference: F^{0s} <- F, F^{sn} <- I, new kernel."""
+    k = compute_kernel(model, state.x, state.cell)
+    if k.n_lost:
+        raise _lost_error(model, state, k, dt)
+    old = state.reference
+    affine = state.affine
+    if old is not None and model.transfer == "apic":
+        affine = _apic_to_new_reference(state, old, k)
+    cluster = gaps = None
+    if model.reference == "adaptive" and model.contact_margin is not None:
+        cluster, gaps = _clusters(model, k)
+    eye = linalg.identity_like(state.F).expand_as(state.F).clone()
+    ref = Reference(
+        kernel=k, F0s=state.F, Fsn=eye, nodes=model.node_positions.T.clone(),
+        active=torch.unique(k.index[k.index >= 0]),
+        rebuilds=(old.rebuilds if old is not None else 0) + 1,
+        contact_rebuilds=(old.contact_rebuilds if old is not None else 0) + int(contact),
+        cluster=cluster, gaps=gaps,
+    )
+    cell = k.cell if k.cell is not None else state.cell
+    return replace(state, reference=ref, affine=affine, cell=cell)
+
+
+def _contact_due(model: Model, ref: Reference) -> bool:
+    """The contact trigger: two clusters may have come within contact_margin cells."""
+    if ref.gaps is None or ref.gaps.shape[0] < 2:
+        return False
+    active = ref.cluster >= 0
+    moved = (ref.nodes - model.node_positions.T).norm(dim=0)[active]
+    D = moved.new_zeros(ref.gaps.shape[0]).scatter_reduce(0, ref.cluster[active], moved, "amax")
+    return bool(((D[:, None] + D[None, :]) >= ref.gaps - model.contact_margin * model.cell_size).any())
+
+
+def _step_reference(model: Model, state: State, dt: float) -> State:
+    """One step in the total/adaptive modes (A-ULMPM App. B with this solver's transfers)."""
+    ref = state.reference
+    if ref is None or ref.kernel is None:
+        state = _rebuild(model, state, dt)
+    elif ref.stale:
+        state = _rebuild(model, state, dt, contact=ref.stale == "contact")
+    k = state.reference.kernel
+    p2g, g2p = TRANSFERS[model.transfer]
+    grid = grid_update(model, state, p2g(model, state, k), dt)
+    if model.grips:
+        grid = _hold_grips(model, state, k, grid)
+    new = g2p(model, state, k, grid, dt)
+    if model.grips:
+        new = _move_grips(model, state, new, dt)
+    _check_finite(model, state, new, dt)
+    ref = replace(new.reference, nodes=state.reference.nodes + dt * grid.v_new)
+    if model.reference == "adaptive":
+        marked = ((linalg.det(ref.Fsn) - 1.0).abs() >= model.epsilon).to(ref.Fsn.dtype).mean()
+        if float(marked) >= model.fraction:  # A-ULMPM eq. 33
+            ref = replace(ref, stale="strain")
+        elif _contact_due(model, ref):
+            ref = replace(ref, stale="contact")
+    return replace(new, reference=ref, time=state.time + dt, step=state.step + 1)
 
 
 # ----------------------------------------------------------------------------- diagnostics

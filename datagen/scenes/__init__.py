@@ -2,14 +2,28 @@
 
 from __future__ import annotations
 
-from . import cantilever, colliding_disks, disks, glyphs, rotating_square, vibrating_bar, wavy_channel
+from . import (
+    balls,
+    bodies,
+    cantilever,
+    colliding_disks,
+    disks,
+    droplet,
+    glyphs,
+    rotating_plate,
+    rotating_square,
+    stretched_bar,
+    vibrating_bar,
+    wavy_channel,
+)
 from .base import ConfigError, Scene
 
 __all__ = ["SCENES", "get_scene", "ConfigError", "Scene"]
 
 SCENES = {
     module.NAME: module
-    for module in (vibrating_bar, colliding_disks, cantilever, rotating_square, disks, wavy_channel, glyphs)
+    for module in (vibrating_bar, colliding_disks, cantilever, rotating_square, disks, wavy_channel, glyphs,
+                   rotating_plate, stretched_bar, droplet, balls, bodies)
 }
 
 

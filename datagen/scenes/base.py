@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import shapes
 from ..mesh import Mesh
 from ..mpm.boundary import Clamp, Wall
 from ..mpm.materials import MATERIALS, Material
@@ -13,6 +14,7 @@ from ..mpm.materials import MATERIALS, Material
 __all__ = [
     "ConfigError", "Scene", "check_params", "make_material", "lattice", "lattice_mesh",
     "chain_mesh", "line_mesh", "vertex_volumes", "nearest", "contained_bodies", "merge_bodies", "outline",
+    "box_bounds", "box_domain",
 ]
 
 
@@ -168,18 +170,42 @@ def outline(domain: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return domain.nodes[used], inverse.reshape(facets.shape).astype(np.int64)
 
 
+def box_bounds(box, key: str = "params.box") -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) corners of a 2D ``[x0, y0, x1, y1]`` or 3D ``[x0, y0, z0, x1, y1, z1]`` box."""
+    ok = isinstance(box, (list, tuple)) and len(box) in (4, 6) and all(
+        isinstance(b, (int, float)) and not isinstance(b, bool) and np.isfinite(b) for b in box)
+    if not ok:
+        raise ConfigError(f"{key} must be [x0, y0, x1, y1] (2D) or [x0, y0, z0, x1, y1, z1] (3D), got {box!r}")
+    d = len(box) // 2
+    lower, upper = np.asarray(box[:d], float), np.asarray(box[d:], float)
+    if np.any(upper <= lower):
+        raise ConfigError(f"{key} must have its upper corner above its lower corner on every axis, got {box!r}")
+    return lower, upper
+
+
+def box_domain(lower, upper, mesh_size: float) -> Mesh:
+    """The background mesh of the box [lower, upper]: triangles in 2D, tetrahedra in 3D."""
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    if len(lower) == 2:
+        return shapes.rectangle(*(upper - lower), mesh_size, origin=lower)
+    return shapes.box(upper - lower, mesh_size, origin=lower)
+
+
 def contained_bodies(domain: Mesh, body: Mesh, v: np.ndarray, p: dict, body_id: np.ndarray | None = None) -> Scene:
-    """Elastic bodies falling inside ``domain`` whose whole boundary is a separating wall.
+    """Elastic bodies falling inside ``domain`` (2D or 3D) whose whole boundary is a separating wall.
 
     p: the scene parameters ``material``, ``E``, ``nu``, ``density``, ``friction``, ``gravity``
-    and ``mesh_size``; the walls are also stored as obstacle geometry a model can see.
+    and ``mesh_size``. Gravity points along -y in 2D and 3D alike (y is up). The walls are
+    also stored as obstacle geometry a model can see: boundary segments in 2D, triangles in 3D.
     """
     material = make_material(p["material"], p["E"], p["nu"], p["density"])
     obstacle_nodes, obstacle_facets = outline(domain)
+    gravity = np.zeros(domain.dim)
+    gravity[1] = -p["gravity"]
     return Scene(
         domain=domain, body=body, x=body.nodes.copy(), v=v, volume=vertex_volumes(body),
         materials=[(material, None)], tracked=np.arange(body.n_nodes),
         walls=[Wall("separating", lambda c, n: np.ones(len(c), bool), p["friction"])],
-        gravity=np.array([0.0, -p["gravity"]]), grid_spacing=p["mesh_size"], body_id=body_id,
+        gravity=gravity, grid_spacing=p["mesh_size"], body_id=body_id,
         obstacle_nodes=obstacle_nodes, obstacle_facets=obstacle_facets,
     )

@@ -1,0 +1,197 @@
+"""Zero-shot inference on any mesh: ``python -m bsms.infer RUN_DIR --mesh FILE [...]``.
+
+The mesh (any format meshio reads, of the run's dimension) is placed in the setting of the
+dataset family the run was trained on -- the family's box, walls, gravity and mid-range
+material and speed, scaled like the family's bodies (``--scene KEY=VALUE`` changes any
+scene parameter) -- and the model rolls it out. Meshes larger than any seen in training
+work: the hierarchy is built for the new mesh (its levels are the run's ``graph.levels``).
+Outputs, in ``--out`` (default ``RUN_DIR/infer/<mesh name>``): ``prediction.xdmf`` (+ .h5)
+for ParaView, ``prediction.gif`` and ``summary.json``. With ``--solver`` the MPM solver
+runs the same setup, and the error and speed-up are reported (and drawn in the GIF).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bsms.checkpoint import CheckpointError, load_model
+from bsms.config import ConfigError
+from bsms.data import NodeType, Scenario
+from bsms.rollout import DEFAULT_BOUND, body_size, rollout, rollout_metrics
+from datagen.atomic import atomic_path
+from datagen.mesh import Mesh, MeshError
+
+__all__ = ["InferError", "infer", "main"]
+
+
+class InferError(ValueError):
+    """An input of ``infer`` that cannot be used; the message names the file and the fix."""
+
+
+def _dataset_config(run_dir: Path, config) -> dict:
+    saved = run_dir / "dataset.json"
+    if saved.is_file():
+        return json.loads(saved.read_text())
+    from datagen.generate import load_dataset_config
+
+    try:
+        return load_dataset_config(config.dataset.config)
+    except ConfigError as exc:
+        raise CheckpointError(f"run folder {run_dir} has no dataset.json and its dataset config cannot be read "
+                              f"({exc}); run infer from the folder train.py ran in") from None
+
+
+def read_mesh(path, dim: int, run_dir) -> Mesh:
+    """The mesh at ``path``, checked against the run's dimension."""
+    try:
+        mesh = Mesh.read(path)
+    except MeshError as exc:
+        raise InferError(f"{exc} (fix or re-export the mesh, then try again)") from None
+    if mesh.dim != dim:
+        raise InferError(f"mesh file {path} is {mesh.dim}D but run {run_dir} was trained on {dim}D meshes; "
+                         f"give a {dim}D mesh")
+    return mesh
+
+
+def parse_overrides(items) -> dict:
+    """``["E=2e4", "velocities=[[0, -0.3]]"]`` -> {"E": 20000.0, "velocities": [[0, -0.3]]}."""
+    import yaml
+
+    out = {}
+    for item in items or ():
+        key, sep, text = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--scene {item!r} must look like KEY=VALUE (a scene parameter, e.g. E=2e4)")
+        value = yaml.safe_load(text)
+        if isinstance(value, str):
+            try:
+                value = float(value)
+            except ValueError:
+                pass
+        out[key] = value
+    return out
+
+
+def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None = None, solver: bool = False,
+          out=None, device: str = "cpu", which: str = "best", progress: bool = True,
+          bound: float = DEFAULT_BOUND) -> dict:
+    """Roll the run's model out on ``meshes`` (paths) placed in its family's setting.
+
+    Returns the summary written to ``summary.json`` (with ``out``, the output folder).
+    """
+    from datagen.families import place
+    from datagen.scenes import get_scene
+    from datagen.simulation import resolve_config
+
+    run_dir = Path(run_dir)
+    model, config, state = load_model(run_dir, which)
+    dim = int(state["dim"])
+    paths = [Path(m) for m in meshes]
+    if not paths:
+        raise InferError("give at least one mesh file (--mesh FILE)")
+    bodies = [read_mesh(p, dim, run_dir) for p in paths]
+    dconfig = _dataset_config(run_dir, config)
+    sim_config = place(dconfig["family"], [str(p) for p in paths], dconfig, overrides or {})
+    if steps is not None:
+        sim_config.setdefault("output", {})["frames"] = int(steps)
+    resolved = resolve_config(sim_config)
+    scene = get_scene(resolved["scene"]).build(resolved["params"])
+    steps = int(resolved["output"]["frames"])
+    frame_dt = float(resolved["output"]["frame_interval"])
+    scenario = Scenario.build(
+        scene.body, config.graph, frame_dt=frame_dt, node_type=scene.node_type, body_id=scene.body_id,
+        obstacle_nodes=scene.obstacle_nodes, obstacle_facets=scene.obstacle_facets, params=resolved["params"],
+        source=f"the scene of {', '.join(map(str, paths))}",
+    )
+    x0 = scenario.full(scene.x[scene.tracked])
+    v0 = scenario.full(scene.v[scene.tracked][None], 0.0)[0]
+    result = rollout(model, scenario, x0, v0, steps, device=device, progress=progress)
+    predicted = result.positions[:, : scenario.n_body]
+    folder = Path(out) if out is not None else run_dir / "infer" / "_".join(p.stem for p in paths)
+    folder.mkdir(parents=True, exist_ok=True)
+    summary = {
+        "run": str(run_dir), "meshes": [str(p) for p in paths], "nodes": [b.n_nodes for b in bodies],
+        "graph_nodes_per_level": [int(n) for n in scenario.hierarchy.node_counts], "steps": len(predicted) - 1,
+        "frame_dt": frame_dt, "finite": result.finite, "seconds_per_step": result.seconds_per_step,
+        "scene": resolved["scene"], "params": resolved["params"], "out": str(folder),
+    }
+    truth = None
+    if solver:
+        from datagen import simulate
+
+        start = time.perf_counter()
+        trajectory = simulate(sim_config)
+        summary["solver_seconds"] = time.perf_counter() - start
+        summary["solver_seconds_per_step"] = trajectory.wall_time / steps
+        truth = trajectory.positions
+        free = scenario.node_type[: scenario.n_body] == NodeType.FREE
+        metrics = rollout_metrics(predicted, truth, free, body_size(scene.body.nodes), bound)
+        summary.update({k: metrics[k] for k in ("rmse_1", "rmse_50", "rmse_all", "rel_all", "unstable_step")})
+        summary["speedup"] = summary["solver_seconds_per_step"] / result.seconds_per_step
+    _write_outputs(folder, scene, predicted, truth, frame_dt)
+    with atomic_path(folder / "summary.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1, default=float))
+    return summary
+
+
+def _write_outputs(folder: Path, scene, predicted: np.ndarray, truth, frame_dt: float) -> None:
+    from bsms import viz
+
+    times = frame_dt * np.arange(len(predicted))
+    data = {}
+    if truth is not None:
+        data["error"] = np.linalg.norm(predicted - truth[: len(predicted)], axis=-1)
+    viz.write_xdmf(folder / "prediction.xdmf", scene.body.cells, predicted, times, data)
+    obstacles = None
+    if scene.obstacle_nodes is not None and len(scene.obstacle_nodes):
+        obstacles = (scene.obstacle_nodes, scene.obstacle_facets)
+    viz.rollout_gif(scene.body.cells, predicted, folder / "prediction.gif", truth=truth, obstacles=obstacles,
+                    frame_dt=frame_dt)
+
+
+def main(argv=None) -> int:
+    import argparse
+    import sys
+
+    from datagen.dataset import DatasetError
+
+    parser = argparse.ArgumentParser(prog="python -m bsms.infer", description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_dir", help="a run folder written by train.py (runs/<name>)")
+    parser.add_argument("--mesh", action="append", required=True, help="mesh file (repeat for several bodies)")
+    parser.add_argument("--scene", action="append", default=[], metavar="KEY=VALUE",
+                        help="change a scene parameter of the placement (repeatable), e.g. --scene E=2e4")
+    parser.add_argument("--steps", type=int, default=None, help="rollout steps (default: the dataset's frames)")
+    parser.add_argument("--solver", action="store_true", help="also run the MPM solver and report the error")
+    parser.add_argument("--out", default=None, help="output folder (default: RUN_DIR/infer/<mesh name>)")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
+    parser.add_argument("--checkpoint", default="best", choices=["best", "latest"], help="which checkpoint")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    if args.steps is not None and args.steps < 1:
+        print("error: --steps must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        summary = infer(args.run_dir, args.mesh, overrides=parse_overrides(args.scene), steps=args.steps,
+                        solver=args.solver, out=args.out, device=args.device, which=args.checkpoint,
+                        progress=not args.quiet)
+    except (InferError, CheckpointError, ConfigError, DatasetError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    line = (f"{summary['steps']} steps on {sum(summary['nodes'])} nodes "
+            f"({summary['seconds_per_step'] * 1e3:.1f} ms per step; levels {summary['graph_nodes_per_level']})")
+    if "rmse_all" in summary:
+        line += (f"; against the solver: RMSE {summary['rmse_all']:.3g} m ({summary['rel_all']:.3g} of the body "
+                 f"size), speed-up {summary['speedup']:.3g}x")
+    if not summary["finite"]:
+        line += "; the rollout went non-finite"
+    print(line)
+    print(f"outputs in {summary['out']}: prediction.xdmf (ParaView), prediction.gif, summary.json")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,232 @@
+"""Pictures and files a person looks at: rollout GIFs, error curves, training curves, the
+speed-accuracy chart, and XDMF time series for ParaView.
+
+Every function writes one file (atomically) and returns its path; matplotlib runs headless.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from datagen.atomic import atomic_path
+
+__all__ = ["training_curve", "error_curves", "speed_accuracy_chart", "rollout_gif", "write_xdmf"]
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    with atomic_path(path, suffix=path.suffix) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    _pyplot().close(fig)
+    return path
+
+
+def training_curve(metrics_csv, path) -> Path:
+    """Training loss (and validation one-step RMSE, right axis) against step."""
+    plt = _pyplot()
+    with open(metrics_csv, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        raise ValueError(f"{metrics_csv} holds no logged steps yet; train longer than train.log_every steps")
+    step = np.array([int(r["step"]) for r in rows])
+    loss = np.array([float(r["loss"]) for r in rows])
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    ax.semilogy(step, loss, color="tab:blue", label="training loss (normalised)")
+    ax.set_xlabel("step")
+    ax.set_ylabel("training loss", color="tab:blue")
+    valid = [(int(r["step"]), float(r["valid_rmse"])) for r in rows if r.get("valid_rmse")]
+    if valid:
+        right = ax.twinx()
+        right.semilogy(*zip(*valid, strict=True), "o-", color="tab:red", label="validation one-step RMSE")
+        right.set_ylabel("validation one-step RMSE (m)", color="tab:red")
+    ax.set_title("training curve")
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def error_curves(curves: dict[str, list[np.ndarray]], frame_dt: float, path, bound: float | None = None) -> Path:
+    """Per-step rollout RMSE against simulated time: the mean (line) and the range over
+    trajectories (band) for each label; ``bound`` draws the instability threshold."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for label, items in curves.items():
+        length = max(len(c) for c in items)
+        stacked = np.full((len(items), length), np.nan)
+        for k, c in enumerate(items):
+            stacked[k, : len(c)] = np.where(np.isfinite(c), c, np.nan)
+        t = frame_dt * np.arange(1, length + 1)
+        line = ax.semilogy(t, np.nanmean(stacked, axis=0), label=label)[0]
+        ax.fill_between(t, np.nanmin(stacked, axis=0), np.nanmax(stacked, axis=0), color=line.get_color(), alpha=0.2)
+    if bound is not None:
+        ax.axhline(bound, color="k", ls="--", lw=0.8, label="instability bound")
+    ax.set_xlabel("simulated time (s)")
+    ax.set_ylabel("position RMSE (m)")
+    ax.set_title("rollout error")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def speed_accuracy_chart(points: list[dict], path) -> Path:
+    """Wall seconds per simulated second (x) against rollout RMSE (y), one point per method.
+
+    points: dicts with ``label``, ``kind`` ("learned", "solver", or "reference": the ground
+    truth's own solver, drawn as a vertical line at its cost), ``seconds_per_sim_second``,
+    ``rmse`` (m; inf or nan when unstable) and ``unstable`` (count). Unstable points sit at
+    the top edge, hollow.
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    finite = [p["rmse"] for p in points if p["kind"] != "reference" and math.isfinite(p["rmse"]) and p["rmse"] > 0]
+    ceiling = 3 * max(finite) if finite else 1.0
+    floor = min(finite) / 3 if finite else 1e-6
+    for p in points:
+        if p["kind"] == "reference":
+            ax.axvline(p["seconds_per_sim_second"], color="tab:blue", ls="--", lw=1)
+            ax.annotate(p["label"] + "\n(the ground truth)", (p["seconds_per_sim_second"], ceiling), fontsize=8,
+                        color="tab:blue", xytext=(-4, 0), textcoords="offset points", ha="right", va="top")
+            continue
+        stable = math.isfinite(p["rmse"]) and p["rmse"] > 0
+        y = p["rmse"] if stable else ceiling
+        style = {"learned": ("o", "tab:red"), "solver": ("s", "tab:blue")}.get(p["kind"], ("^", "tab:gray"))
+        ax.scatter(p["seconds_per_sim_second"], y, marker=style[0], color=style[1], s=50,
+                   facecolors=style[1] if stable else "none", zorder=3)
+        note = p["label"] + ("" if stable else " (unstable)")
+        ax.annotate(note, (p["seconds_per_sim_second"], y), textcoords="offset points", xytext=(6, 4), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_ylim(floor, ceiling * 2)
+    xs = [p["seconds_per_sim_second"] for p in points if p["seconds_per_sim_second"] > 0]
+    if xs:
+        ax.set_xlim(min(xs) / 2, max(xs) * 3)
+    ax.set_xlabel("wall seconds per simulated second (lower is faster)")
+    ax.set_ylabel("rollout position RMSE (m)")
+    ax.set_title("speed against accuracy (solver reference: the data's own settings)")
+    ax.grid(alpha=0.3, which="both")
+    return _save(fig, path)
+
+
+def _limits(*arrays) -> tuple[np.ndarray, np.ndarray]:
+    stacked = np.concatenate([a.reshape(-1, a.shape[-1]) for a in arrays if a is not None])
+    stacked = stacked[np.isfinite(stacked).all(axis=1)]
+    lo, hi = stacked.min(axis=0), stacked.max(axis=0)
+    pad = 0.05 * (hi - lo).max()
+    return lo - pad, hi + pad
+
+
+def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarray | None = None,
+                obstacles: tuple[np.ndarray, np.ndarray] | None = None, frame_dt: float = 1.0,
+                fps: int = 10, max_frames: int = 80) -> Path:
+    """Animated rollout of the body: ground truth (left) next to the prediction coloured by its
+    position error (right); without ``truth`` the prediction alone coloured by speed.
+
+    cells: (C, d+1) body cells; predicted / truth: (T, N, d) body-node positions; obstacles:
+    (nodes, facets) drawn in grey. 3D bodies are drawn as point clouds (x-y projection).
+    """
+    plt = _pyplot()
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    steps = min(len(predicted), len(truth)) if truth is not None else len(predicted)
+    frames = np.unique(np.linspace(0, steps - 1, min(steps, max_frames)).round().astype(int))
+    dim = predicted.shape[-1]
+    panels = 2 if truth is not None else 1
+    fig, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 4.2), squeeze=False)
+    axes = axes[0]
+    lo, hi = _limits(predicted[:steps], truth[:steps] if truth is not None else None,
+                     obstacles[0] if obstacles is not None else None)
+    if truth is not None:
+        error = np.linalg.norm(predicted[:steps] - truth[:steps], axis=-1)
+        label = "position error (m)"
+    else:
+        error = np.zeros(predicted.shape[:2])
+        error[1:] = np.linalg.norm(np.diff(predicted, axis=0), axis=-1) / frame_dt
+        label = "speed (m/s)"
+    vmax = float(np.nanmax(np.where(np.isfinite(error), error, np.nan))) if np.isfinite(error).any() else 1.0
+    vmax = vmax if vmax > 0 else 1.0
+    mappable = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, vmax))
+    fig.colorbar(mappable, ax=axes[-1], fraction=0.046, label=label)
+
+    def draw(frame: int):
+        for ax in axes:
+            ax.clear()
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(lo[1], hi[1])
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if obstacles is not None and len(obstacles[0]):
+                nodes, facets = obstacles
+                for facet in facets:
+                    ax.plot(*nodes[np.append(facet, facet[0])][:, :2].T, color="0.6", lw=1)
+        shown = [(truth[frame], None, "solver")] if truth is not None else []
+        shown.append((predicted[frame], error[frame], "learned"))
+        for ax, (x, colour, title) in zip(axes, shown, strict=True):
+            if not np.isfinite(x).all():
+                ax.set_title(f"{title}: not finite")
+                continue
+            if dim == 2:
+                ax.triplot(x[:, 0], x[:, 1], cells, color="0.3", lw=0.3)
+                if colour is not None:
+                    ax.tripcolor(x[:, 0], x[:, 1], cells, colour, shading="gouraud", cmap="viridis", vmin=0,
+                                 vmax=vmax)
+            else:
+                ax.scatter(x[:, 0], x[:, 1], c=colour if colour is not None else "0.4", s=4, cmap="viridis",
+                           vmin=0, vmax=vmax)
+            ax.set_title(f"{title}, t = {frame * frame_dt:.2f} s", fontsize=9)
+        return []
+
+    animation = FuncAnimation(fig, draw, frames=frames, blit=False)
+    path = Path(path)
+    with atomic_path(path, suffix=".gif") as tmp:
+        animation.save(tmp, writer=PillowWriter(fps=fps))
+    plt.close(fig)
+    return path
+
+
+def write_xdmf(path, cells: np.ndarray, positions: np.ndarray, times: np.ndarray,
+               point_data: dict[str, np.ndarray] | None = None) -> Path:
+    """XDMF time series (``path`` + its ``.h5``) of the body for ParaView: node positions per
+    frame (as point data ``displacement`` from frame 0 too) and any (T, N[, k]) point data."""
+    import contextlib
+    import shutil
+    import tempfile
+
+    import meshio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    dim = positions.shape[-1]
+    kind = {2: "line", 3: "triangle", 4: "tetra"}[cells.shape[1]]
+
+    def padded(values: np.ndarray) -> np.ndarray:
+        return np.pad(values, ((0, 0), (0, 3 - dim)))
+
+    # written in a private folder, then both files moved into place (the .xdmf names its .h5);
+    # meshio puts the .h5 in the working folder, hence the chdir
+    folder = Path(tempfile.mkdtemp(prefix=f".{path.stem}.", dir=path.parent)).resolve()
+    try:
+        with contextlib.chdir(folder), meshio.xdmf.TimeSeriesWriter(path.name) as writer:
+            writer.write_points_cells(padded(positions[0]), [(kind, cells)])
+            for k, t in enumerate(times):
+                data = {"position": padded(positions[k]), "displacement": padded(positions[k] - positions[0])}
+                for name, values in (point_data or {}).items():
+                    data[name] = values[k]
+                writer.write_data(float(t), point_data=data)
+        for written in folder.iterdir():
+            written.replace(path.parent / written.name)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    return path

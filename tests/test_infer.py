@@ -1,0 +1,102 @@
+"""python -m bsms.infer: zero-shot rollouts on mesh files (2D and 3D), larger meshes, errors."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+from conftest import tiny_run_config
+
+from bsms.infer import main
+from bsms.trainer import Trainer, load_config, prepare_dataset
+from datagen import shapes
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def train_tiny(dataset, runs, name):
+    config = load_config(tiny_run_config(dataset, runs, name=name, train={"steps": 4, "valid_every": 4,
+                                                                          "checkpoint_every": 4}))
+    trainer = Trainer(config, dataset_folder=prepare_dataset(config, progress=False))
+    trainer.fit()
+    return runs / name, trainer
+
+
+@pytest.fixture(scope="module")
+def run_2d(tiny_dataset, tmp_path_factory):
+    return train_tiny(tiny_dataset, tmp_path_factory.mktemp("runs"), "glyphs2d")
+
+
+@pytest.fixture(scope="module")
+def run_3d(tiny_dataset_3d, tmp_path_factory):
+    return train_tiny(tiny_dataset_3d, tmp_path_factory.mktemp("runs"), "balls3d")
+
+
+def write(mesh, path):
+    kind = {2: "triangle", 3: "tetra"}[mesh.dim]
+    meshio.write(path, meshio.Mesh(np.pad(mesh.nodes, ((0, 0), (0, 3 - mesh.dim))), [(kind, mesh.cells)]))
+    return path
+
+
+def test_2d_mesh_file_with_the_solver(run_2d, tmp_path, capsys):
+    run, _ = run_2d
+    mesh_file = write(shapes.annulus(0.5, 1.0, 0.25), tmp_path / "ring.vtu")
+    code = main([str(run), "--mesh", str(mesh_file), "--steps", "3", "--solver", "--out", str(tmp_path / "out"),
+                 "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["steps"] == 3 and summary["finite"] and np.isfinite(summary["rmse_all"])
+    assert summary["speedup"] > 0 and summary["scene"] == "bodies"
+    for name in ("prediction.xdmf", "prediction.h5", "prediction.gif"):
+        assert (tmp_path / "out" / name).stat().st_size > 0
+    assert "against the solver: RMSE" in capsys.readouterr().out
+
+
+def test_mesh_four_times_larger_than_any_in_training(run_2d, tmp_path):
+    run, trainer = run_2d
+    largest = max(s.n_body for s in trainer.train_set.scenarios + trainer.valid_set.scenarios)
+    mesh = shapes.disk(1.0, 0.05)
+    assert mesh.n_nodes >= 4 * largest
+    out = tmp_path / "big"
+    assert main([str(run), "--mesh", str(write(mesh, tmp_path / "big.msh")), "--steps", "2", "--out", str(out),
+                 "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["nodes"] == [mesh.n_nodes] and summary["finite"]
+    assert len(summary["graph_nodes_per_level"]) == 3 and summary["graph_nodes_per_level"][0] > mesh.n_nodes
+
+
+def test_3d_mesh_file(run_3d, tmp_path):
+    run, _ = run_3d
+    out = tmp_path / "cube"
+    mesh_file = write(shapes.box((1.0, 1.0, 1.0), 0.4), tmp_path / "cube.vtu")
+    assert main([str(run), "--mesh", str(mesh_file), "--steps", "2", "--solver", "--out", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 2 and summary["finite"] and np.isfinite(summary["rmse_all"])
+    assert (out / "prediction.gif").stat().st_size > 0
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "bsms.infer", *map(str, args), "--quiet"], capture_output=True,
+                          text=True, cwd=ROOT, timeout=180)
+
+
+def test_errors_name_the_file_and_the_fix(run_2d, tmp_path):
+    run, _ = run_2d
+    cube = write(shapes.box((1.0, 1.0, 1.0), 0.5), tmp_path / "cube.vtu")
+    result = run_cli(run, "--mesh", cube)
+    assert result.returncode == 2
+    assert result.stderr.strip() == (f"error: mesh file {cube} is 3D but run {run} was trained on 2D meshes; "
+                                     "give a 2D mesh")
+    bad = tmp_path / "bad.vtu"
+    meshio.write(bad, meshio.Mesh(np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]]), [("triangle", np.array([[0, 1, 2]]))]))
+    result = run_cli(run, "--mesh", bad)
+    assert result.returncode == 2 and f"mesh file {bad}" in result.stderr and "degenerate" in result.stderr
+    (tmp_path / "empty_run").mkdir()
+    result = run_cli(tmp_path / "empty_run", "--mesh", cube)
+    assert result.returncode == 2
+    assert "has no usable checkpoint" in result.stderr and "train it with python train.py CONFIG" in result.stderr
+    result = run_cli(run, "--mesh", tmp_path / "nothing.msh")
+    assert result.returncode == 2 and f"mesh file {tmp_path / 'nothing.msh'} does not exist" in result.stderr

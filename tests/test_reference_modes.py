@@ -1,0 +1,256 @@
+"""A-ULMPM reference configurations (eulerian / total / adaptive): equivalences, rigid motion,
+numerical fracture, the droplet's rebuild savings, the contact trigger and the fluid material."""
+
+from dataclasses import replace
+from functools import cache
+
+import numpy as np
+import pytest
+import torch
+
+import datagen
+from datagen import shapes
+from datagen.mesh import with_extra_layer
+from datagen.mpm import linalg
+from datagen.mpm.boundary import apply_conditions
+from datagen.mpm.kernels import MeshTables
+from datagen.mpm.materials import NeoHookean, WeaklyCompressibleFluid
+from datagen.mpm.solver import Model, State, compute_kernel, kernel_rebuilds, kirchhoff_stress, step
+from datagen.scenes import ConfigError
+from datagen.scenes.base import lattice
+from datagen.scenes.stretched_bar import bar_length
+from datagen.simulation import build_simulation
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@cache
+def _run(scene: str, reference: str, **solver):
+    torch.set_num_threads(1)
+    return datagen.simulate({"scene": scene, "solver": {"reference": reference, **solver}})
+
+
+def fracture(traj) -> np.ndarray:
+    """(T,) fraction of body-mesh edges longer than twice the background cell size, per frame."""
+    edges = traj.mesh.edges
+    lengths = np.linalg.norm(traj.positions[:, edges[:, 0]] - traj.positions[:, edges[:, 1]], axis=-1)
+    return (lengths > 2 * traj.config["params"]["mesh_size"]).mean(axis=1)
+
+
+# ----------------------------------------------------------------------------- 1. equivalences
+def _plain_umls_flip(model: Model, state: State, dt: float) -> State:
+    """UMLS Algorithm 1 with FLIP, written out independently of the solver's transfer code."""
+    k = compute_kernel(model, state.x, state.cell)
+    n, d = model.n_nodes, model.dim
+    idx = k.index.clamp(min=0)
+    w = k.weight
+    grad = k.grad  # (P, K, d)
+    mass = torch.zeros(n, dtype=w.dtype).index_add_(0, idx.reshape(-1), (w * state.mass[:, None]).reshape(-1))
+    momentum = torch.zeros(n, d, dtype=w.dtype).index_add_(
+        0, idx.reshape(-1), (w[..., None] * (state.mass[:, None] * state.v)[:, None, :]).reshape(-1, d))
+    tau = kirchhoff_stress(model, state.F)
+    f_slots = -state.volume0[:, None, None] * torch.einsum("pab,pkb->pka", tau, grad)
+    force = torch.zeros(n, d, dtype=w.dtype).index_add_(0, idx.reshape(-1), f_slots.reshape(-1, d))
+    active = mass > 1e-10 * state.mass.mean()
+    safe = torch.where(active, mass, torch.ones_like(mass))[:, None]
+    v_old = torch.where(active[:, None], momentum / safe, 0.0)
+    v_new = torch.where(active[:, None], v_old + dt * (force / safe + model.gravity), 0.0)
+    v_new = apply_conditions(v_new.T.contiguous(), model.conditions).T
+    vn, dv = v_new[idx], (v_new - v_old)[idx]  # (P, K, d)
+    x = state.x + dt * (w[..., None] * vn).sum(1)
+    v = state.v + (w[..., None] * dv).sum(1)
+    grad_v = torch.einsum("pka,pkb->pab", vn, grad)
+    return replace(state, x=x, v=v, F=state.F + dt * grad_v @ state.F, cell=k.cell, time=state.time + dt,
+                   step=state.step + 1)
+
+
+def test_eulerian_mode_is_the_plain_umls_solver():
+    config = {"scene": "rotating_plate", "solver": {"reference": "eulerian", "transfer": "flip"},
+              "output": {"frames": 3}}
+    traj = datagen.simulate(config)
+    sim = build_simulation(config)
+    state = sim.state
+    for _ in range(3 * sim.substeps):
+        state = _plain_umls_flip(sim.model, state, sim.dt)
+    # 1e-12 relative to the scales (box 1 m, speeds ~10 m/s): summation order differs between the two
+    speed = np.abs(traj.velocities[-1]).max()
+    np.testing.assert_allclose(traj.positions[-1], state.x.numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(traj.velocities[-1], state.v.numpy(), rtol=0, atol=1e-12 * speed)
+    assert np.abs(traj.positions[-1] - traj.positions[0]).max() > 0.05  # the plate really turned
+    assert traj.kernel_rebuilds == 3 * sim.substeps  # one kernel per step
+
+
+def test_adaptive_rebuilding_every_step_is_eulerian():
+    """s = n recovers EMPM (A-ULMPM §5.3.4): with a criterion every step meets, the reference
+    machinery (F^{0s}, F^{sn}, moved nodes, wall planes) gives the eulerian run."""
+    runs = {ref: datagen.simulate({"scene": "stretched_bar", "solver": {"reference": ref, **extra},
+                                   "output": {"frames": 2}})
+            for ref, extra in (("eulerian", {}), ("adaptive", {"epsilon": 1e-300, "fraction": 1e-9}))}
+    steps = 2 * runs["eulerian"].substeps
+    assert runs["adaptive"].kernel_rebuilds == steps == runs["eulerian"].kernel_rebuilds
+    np.testing.assert_allclose(runs["adaptive"].positions, runs["eulerian"].positions, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(runs["adaptive"].velocities, runs["eulerian"].velocities, rtol=0, atol=1e-10)
+
+
+def test_adaptive_with_unreachable_epsilon_is_total():
+    short = {"output": {"frames": 4}}
+    total = datagen.simulate({"scene": "rotating_plate", "solver": {"reference": "total"}, **short})
+    adaptive = datagen.simulate({"scene": "rotating_plate", "solver": {"reference": "adaptive", "epsilon": 1e9}, **short})
+    assert total.kernel_rebuilds == adaptive.kernel_rebuilds == 1
+    assert np.array_equal(total.positions, adaptive.positions)
+    assert np.array_equal(total.velocities, adaptive.velocities)
+
+
+# ----------------------------------------------------------------------------- 2. rigid motion
+def _block(velocity, reference="adaptive", **options):
+    """A 0.3 x 0.2 Neo-Hookean block in a 2 x 2 box (walls far away), no gravity."""
+    x, _, spacing = lattice([0.5, 0.8], [0.8, 1.0], 0.025)
+    tables = MeshTables.build(with_extra_layer(shapes.rectangle(2.0, 2.0, 0.05)))
+    model = Model(tables, "umls", "flip", ((NeoHookean(200.0, 0.3, 1.0), None),), (),
+                  torch.zeros(2, dtype=torch.float64), tables.nodes, 0.04, reference=reference, **options)
+    v = velocity(torch.as_tensor(x))
+    return model, State.at_rest_shape(x, v, np.full(len(x), np.prod(spacing)), 1.0)
+
+
+def test_rigid_translation_and_rotation_trigger_no_rebuild():
+    centre = torch.tensor([0.65, 0.9], dtype=torch.float64)
+    omega, drift = 4.0, torch.tensor([1.0, 0.5], dtype=torch.float64)
+
+    def rigid(x):
+        r = x - centre
+        return drift + omega * torch.stack([-r[:, 1], r[:, 0]], 1)
+
+    model, state = _block(rigid)
+    x0 = state.x.clone()
+    dt = 7e-4
+    for _ in range(500):
+        state = step(model, state, dt)
+    assert kernel_rebuilds(state) == 1  # the initial kernel only: zero updates
+    moved = (state.x.mean(0) - x0.mean(0)).norm()
+    assert moved > 6 * model.cell_size  # it travelled many cells ...
+    r0, r1 = x0[0] - x0.mean(0), state.x[0] - state.x.mean(0)
+    turned = torch.atan2(r0[0] * r1[1] - r0[1] * r1[0], r0 @ r1)
+    assert turned > 1.0  # ... and turned by more than 57 degrees
+    assert float((linalg.det(state.F) - 1).abs().max()) < 0.01  # and stayed rigid
+
+
+def test_a_deforming_block_does_trigger_updates():
+    centre = torch.tensor([0.65, 0.9], dtype=torch.float64)
+    model, state = _block(lambda x: -3.0 * (x - centre))  # squeezed towards its centre
+    for _ in range(100):
+        state = step(model, state, 7e-4)
+    assert kernel_rebuilds(state) > 3
+
+
+def test_contact_trigger_lets_approaching_bodies_collide():
+    """Two blocks flying at each other: without the contact trigger (or in total mode) they share
+    no nodes at s and pass through each other; with it the reference is updated before they
+    meet and they collide."""
+    def two_blocks(reference, margin):
+        xa, _, spacing = lattice([0.3, 0.9], [0.5, 1.1], 0.025)
+        xb = xa + np.array([0.5, 0.0])
+        x = np.concatenate([xa, xb])
+        v = np.zeros_like(x)
+        v[: len(xa), 0], v[len(xa):, 0] = 1.5, -1.5
+        tables = MeshTables.build(with_extra_layer(shapes.rectangle(2.0, 2.0, 0.05)))
+        model = Model(tables, "umls", "flip", ((NeoHookean(200.0, 0.3, 1.0), None),), (),
+                      torch.zeros(2, dtype=torch.float64), tables.nodes, 0.04, reference=reference,
+                      contact_margin=margin)
+        return model, State.at_rest_shape(x, v, np.full(len(x), np.prod(spacing)), 1.0), len(xa)
+
+    results = {}
+    for name, reference, margin in (("trigger", "adaptive", 1.0), ("no trigger", "adaptive", None),
+                                    ("total", "total", 1.0)):
+        model, state, n_a = two_blocks(reference, margin)
+        for _ in range(250):  # 0.175 s: at 1.5 m/s each, the 0.3 gap closes after 0.1 s
+            state = step(model, state, 7e-4)
+        results[name] = (float(state.v[:n_a, 0].mean()), state.reference.contact_rebuilds)
+    assert results["trigger"][1] > 0 and results["trigger"][0] < 0.75  # they hit and slowed down
+    assert results["no trigger"][1] == 0 and results["no trigger"][0] == pytest.approx(1.5, abs=1e-6)
+    assert results["total"][0] == pytest.approx(1.5, abs=1e-6)
+
+
+# ----------------------------------------------------------------------------- 3. numerical fracture
+def test_stretched_bar_tears_in_eulerian_mode_only():
+    runs = {mode: _run("stretched_bar", mode) for mode in ("eulerian", "total", "adaptive")}
+    p = runs["total"].config["params"]
+    released = runs["total"].times > p["release_time"] + 0.5
+    assert released.sum() >= 3
+    for mode, traj in runs.items():
+        length = bar_length(p, traj.positions)
+        rest = length[0]
+        error = np.abs(length[released] - rest).max() / rest
+        peak = length.max() / rest
+        assert peak > 1.9  # every mode was pulled to about twice its length
+        if mode == "eulerian":
+            assert fracture(traj).max() > 0
+            assert error > 0.10, f"{mode} bar recovered its rest length ({error:.3f})"
+        else:
+            assert fracture(traj).max() == 0
+            assert error < 0.05, f"{mode} bar did not recover its rest length ({error:.3f})"
+    assert runs["adaptive"].kernel_rebuilds < runs["eulerian"].kernel_rebuilds / 100
+
+
+def test_rotating_plate_tears_in_eulerian_mode_only():
+    runs = {mode: _run("rotating_plate", mode) for mode in ("eulerian", "total", "adaptive")}
+    assert fracture(runs["eulerian"]).max() > 0.01
+    assert fracture(runs["total"]).max() == 0
+    assert fracture(runs["adaptive"]).max() == 0
+    assert 1 < runs["adaptive"].kernel_rebuilds < runs["eulerian"].kernel_rebuilds / 20
+
+
+# ----------------------------------------------------------------------------- 4. droplet
+def test_droplet_adaptive_rebuilds_rarely_and_follows_eulerian():
+    runs = {mode: _run("droplet", mode) for mode in ("eulerian", "total", "adaptive")}
+    eul = runs["eulerian"].diagnostics["center_of_mass"]
+    scale = np.linalg.norm(eul - eul[0], axis=1).max()  # how far the eulerian centre of mass travels
+    error = {m: np.linalg.norm(t.diagnostics["center_of_mass"] - eul, axis=1).max() / scale for m, t in runs.items()}
+    solver = runs["adaptive"].config["solver"]
+    assert (solver["epsilon"], solver["fraction"], solver["contact_margin"]) == (0.01, 0.01, None)
+    assert runs["eulerian"].kernel_rebuilds >= 4 * runs["adaptive"].kernel_rebuilds
+    assert error["adaptive"] < 0.02
+    assert error["total"] > 0.02
+    assert runs["total"].positions[:, :, 1].min() > -0.05  # walls act on the moved nodes: nothing fell through
+    frames_rebuilds = runs["adaptive"].diagnostics["kernel_rebuilds"]
+    assert frames_rebuilds[-1] == runs["adaptive"].kernel_rebuilds and np.all(np.diff(frames_rebuilds) >= 0)
+
+
+# ----------------------------------------------------------------------------- materials and config
+@pytest.mark.parametrize("gamma", [1.0, 7.0])
+def test_fluid_stress_is_the_energy_gradient_and_a_pressure(gamma):
+    fluid = WeaklyCompressibleFluid(300.0, 0.0, 1.0, gamma=gamma)
+    g = torch.Generator().manual_seed(0)
+    F = (torch.eye(2, dtype=torch.float64) + 0.1 * torch.randn(8, 2, 2, generator=g, dtype=torch.float64))
+    F.requires_grad_(True)
+    (dpsi,) = torch.autograd.grad(fluid.energy_density(F).sum(), F)
+    with torch.no_grad():
+        np.testing.assert_allclose(fluid.first_piola(F).numpy(), dpsi.numpy(), atol=1e-9)
+        tau = fluid.kirchhoff(F)
+        J = linalg.det(F)
+        np.testing.assert_allclose(tau[:, 0, 1].numpy(), 0.0, atol=1e-14)  # no shear stress
+        compressed = J < 1
+        assert bool((tau[compressed, 0, 0] < 0).all()) and bool((tau[~compressed, 0, 0] > 0).all())
+    assert fluid.wave_speed == pytest.approx(10.0)  # K = E / 3 = 100
+
+
+def test_viscosity_damps_a_shear_flow():
+    def shear_energy(viscosity):
+        x, _, spacing = lattice([0.3, 0.3], [0.7, 0.7], 0.025)
+        tables = MeshTables.build(with_extra_layer(shapes.rectangle(1.0, 1.0, 0.05)))
+        fluid = WeaklyCompressibleFluid(300.0, 0.0, 1.0, fluid_viscosity=viscosity)
+        model = Model(tables, "umls", "apic", ((fluid, None),), (), torch.zeros(2, dtype=torch.float64),
+                      tables.nodes, 0.04)
+        v = np.stack([np.sin(2 * np.pi * (x[:, 1] - 0.3) / 0.4), np.zeros(len(x))], 1)
+        state = State.at_rest_shape(x, v, np.full(len(x), np.prod(spacing)), 1.0)
+        for _ in range(60):
+            state = step(model, state, 1e-3)
+        return float((state.mass * (state.v ** 2).sum(1)).sum())
+
+    assert shear_energy(0.05) < 0.8 * shear_energy(0.0)
+
+
+@pytest.mark.parametrize(("key", "value"), [("reference", "lagrangian"), ("epsilon", -1.0), ("fraction", 1.5),
+                                            ("fraction", 0), ("contact_margin", "far"), ("contact_margin", -1)])
+def test_bad_reference_options_name_the_key(key, value):
+    with pytest.raises(ConfigError, match=f"solver.{key}"):
+        datagen.simulate({"scene": "droplet", "solver": {key: value}})

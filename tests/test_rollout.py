@@ -1,0 +1,75 @@
+"""bsms.rollout: metrics against a direct computation, instability detection, kinematic nodes."""
+
+import numpy as np
+import pytest
+import torch
+
+from bsms.data import GraphOptions, NodeType, Scenario
+from bsms.rollout import body_size, rollout, rollout_metrics, summarize
+from datagen import shapes
+
+
+def test_metrics_match_a_direct_computation():
+    rng = np.random.default_rng(0)
+    truth = rng.normal(size=(61, 7, 2))
+    predicted = truth + rng.normal(scale=0.01, size=truth.shape) * np.arange(61)[:, None, None]
+    predicted[0] = truth[0]
+    mask = np.array([True, True, False, True, True, True, False])
+    size = 2.5
+    m = rollout_metrics(predicted, truth, mask, size, bound=10.0)
+    per_step = [np.sqrt(np.mean(np.sum((predicted[t, mask] - truth[t, mask]) ** 2, axis=1))) for t in range(1, 61)]
+    np.testing.assert_allclose(m["error_curve"], per_step, rtol=1e-12)
+    assert m["rmse_1"] == pytest.approx(per_step[0], rel=1e-12)
+    assert m["rmse_50"] == pytest.approx(per_step[49], rel=1e-12)
+    everything = (predicted[1:, mask] - truth[1:, mask]) ** 2
+    assert m["rmse_all"] == pytest.approx(np.sqrt(everything.sum(-1).mean()), rel=1e-12)
+    assert m["rel_all"] == pytest.approx(m["rmse_all"] / size, rel=1e-12)
+    assert m["unstable_step"] is None
+    assert body_size(np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 4.0]])) == 5.0
+    summary = summarize([m, {**m, "rmse_all": m["rmse_all"] + 2, "unstable_step": 7}])
+    assert summary["rmse_all"] == pytest.approx(m["rmse_all"] + 1) and summary["rmse_all_std"] == pytest.approx(1)
+    assert summary["unstable"] == 1 and summary["first_unstable_step"] == 7
+
+
+def test_instability_step_and_non_finite_states():
+    truth = np.zeros((21, 3, 2))
+    predicted = np.zeros_like(truth)
+    predicted[:, :, 0] = 0.01 * np.arange(21)[:, None] ** 2  # error 0.01 t^2
+    m = rollout_metrics(predicted, truth, np.ones(3, bool), size=1.0, bound=0.5)
+    assert m["unstable_step"] == 8  # 0.01 * 8^2 = 0.64 is the first error above 0.5
+    predicted[12:, 1] = np.nan
+    m = rollout_metrics(predicted[:13], truth, np.ones(3, bool), size=1.0, bound=100.0)
+    assert m["unstable_step"] == 12 and np.isinf(m["error_curve"][11:]).all() and np.isinf(m["rmse_all"])
+
+
+class Exploding(torch.nn.Module):
+    """A 'model' whose velocity change doubles the velocity of free nodes every step."""
+
+    def __init__(self):
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.zeros(()))
+
+    def velocity_change(self, graph):
+        free = (graph.node_type == NodeType.FREE)[:, None]
+        return torch.where(free, graph.velocity + 1.0, torch.zeros_like(graph.velocity))
+
+
+def test_a_deliberately_unstable_model_is_reported_at_the_right_step():
+    mesh = shapes.rectangle(1.0, 0.2, 0.1)
+    clamped = np.where(mesh.nodes[:, 0] < 1e-9, NodeType.CLAMPED, NodeType.FREE)
+    scenario = Scenario.build(mesh, GraphOptions(levels=2, contact=False), frame_dt=0.1, node_type=clamped)
+    steps = 12
+    result = rollout(Exploding(), scenario, mesh.nodes, np.zeros_like(mesh.nodes), steps, warmup=0)
+    # free nodes: v_t = 2^t - 1 along both axes, x_t = x_0 + 0.1 * sum_{s<=t} v_s; clamped nodes stay put
+    v = 2.0 ** np.arange(steps + 1) - 1.0
+    x = 0.1 * np.cumsum(v)
+    free = clamped == NodeType.FREE
+    np.testing.assert_allclose(result.positions[:, free] - mesh.nodes[free], np.repeat(x[:, None], 2, -1)[:, None]
+                               .repeat(free.sum(), 1), rtol=1e-12)
+    assert (result.positions[:, ~free] == mesh.nodes[~free]).all()
+    m = rollout_metrics(result.positions, np.repeat(mesh.nodes[None], steps + 1, 0), free, body_size(mesh.nodes),
+                        bound=0.5)
+    error = np.sqrt(2) * x[1:]
+    expected = int(np.flatnonzero(error > 0.5 * body_size(mesh.nodes))[0]) + 1
+    assert m["unstable_step"] == expected
+    assert len(result.step_seconds) == steps and result.finite
