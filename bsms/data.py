@@ -156,6 +156,11 @@ class GraphOptions:
         edges of its facets), so that the model can see the walls it bounces off.
     contact: add world-space contact edges per frame, carried to every level.
     contact_radius: contact distance in units of the median rest edge length of the body.
+        MPM bodies feel a wall about one background cell before they reach it, so it should
+        cover a background cell (the family configs use 3 body edges = ~1.5 cells).
+    obstacle_spacing: obstacle facets are subdivided until no obstacle edge is longer than
+        this many median body edges (0: keep the geometry as stored), so that a body node
+        near a wall always finds wall nodes within the contact radius.
     self_contact: also join close nodes of the same body that are not mesh neighbours.
     constants: scene parameters (names in the trajectory's ``params``) fed to every node,
         such as ``E``; positive values spanning a decade or more are best given as ``log_E``
@@ -167,7 +172,8 @@ class GraphOptions:
     self_loops: bool = True
     obstacles: bool = True
     contact: bool = True
-    contact_radius: float = 1.5
+    contact_radius: float = 3.0
+    obstacle_spacing: float = 1.0
     self_contact: bool = False
     constants: list[str] = field(default_factory=list)
 
@@ -177,6 +183,9 @@ class GraphOptions:
         if not 1 <= self.levels <= 16:
             raise ConfigError(f"config key '{prefix}.levels' must be from 1 to 16 (the mesh included), "
                               f"got {self.levels}")
+        if self.obstacle_spacing < 0:
+            raise ConfigError(f"config key '{prefix}.obstacle_spacing' must be >= 0 (0 keeps the stored "
+                              f"geometry), got {self.obstacle_spacing}")
         if self.contact_radius <= 0:
             raise ConfigError(f"config key '{prefix}.contact_radius' must be positive (in median rest edge "
                               f"lengths), got {self.contact_radius}")
@@ -209,6 +218,52 @@ def frame_velocities(positions: np.ndarray, initial_velocity: np.ndarray, frame_
     velocities[0] = initial_velocity
     velocities[1:] = np.diff(positions, axis=0) / frame_dt
     return velocities
+
+
+def subdivide_facets(nodes: np.ndarray, facets: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Obstacle geometry with no facet edge longer than ``spacing`` (2D: original nodes first).
+
+    nodes (M, d); facets (F, k) with k = 2 (segments) or 3 (triangles). Each facet is split
+    uniformly into n pieces per edge (segments: n per segment; triangles: one n for all, so
+    shared edges get the same points); points shared by facets are merged.
+    """
+    k = facets.shape[1]
+    if len(facets) == 0 or k not in (2, 3):
+        return nodes, facets
+    corners = nodes[facets]  # (F, k, d)
+    lengths = np.linalg.norm(corners[:, [1, 2, 0][:k]] - corners, axis=-1) if k == 3 else \
+        np.linalg.norm(corners[:, 1] - corners[:, 0], axis=-1)[:, None]
+    if lengths.max() <= spacing:
+        return nodes, facets
+    if k == 2:
+        pieces = np.maximum(1, np.ceil(lengths[:, 0] / spacing).astype(int))
+        points, segments = [nodes], []
+        count = len(nodes)
+        for (a, b), n in zip(facets, pieces, strict=True):
+            inner = nodes[a] + np.outer(np.arange(1, n) / n, nodes[b] - nodes[a])
+            ids = np.concatenate([[a], count + np.arange(n - 1), [b]])
+            points.append(inner)
+            count += n - 1
+            segments.append(np.stack([ids[:-1], ids[1:]], axis=1))
+        return np.concatenate(points), np.concatenate(segments)
+    n = int(np.ceil(lengths.max() / spacing))
+    # barycentric lattice (i, j) with i + j <= n, and its small triangles
+    lattice = np.array([(i, j) for i in range(n + 1) for j in range(n + 1 - i)])
+    index = {tuple(p): q for q, p in enumerate(lattice)}
+    small = []
+    for i in range(n):
+        for j in range(n - i):
+            small.append((index[i, j], index[i + 1, j], index[i, j + 1]))
+            if i + j < n - 1:
+                small.append((index[i + 1, j], index[i + 1, j + 1], index[i, j + 1]))
+    small = np.array(small)
+    weights = np.column_stack([n - lattice.sum(1), lattice[:, 0], lattice[:, 1]]) / n  # (L, 3)
+    points = np.einsum("lc,fcd->fld", weights, corners).reshape(-1, nodes.shape[1])
+    triangles = (small[None] + len(lattice) * np.arange(len(facets))[:, None, None]).reshape(-1, 3)
+    scale = max(float(np.abs(points).max()), 1.0)
+    _, first, inverse = np.unique(np.round(points / (1e-9 * scale)).astype(np.int64), axis=0, return_index=True,
+                                  return_inverse=True)
+    return points[first], inverse.reshape(-1)[triangles]
 
 
 @dataclass
@@ -247,9 +302,12 @@ class Scenario:
         body_id = np.zeros(n_body, np.int64) if body_id is None else np.asarray(body_id, np.int64)
         rest, edges = mesh.nodes, mesh.edges
         has_obstacles = options.obstacles and obstacle_nodes is not None and len(obstacle_nodes) > 0
+        spacing = options.obstacle_spacing * float(np.median(mesh.edge_lengths))
         if has_obstacles:
             obstacle_nodes = np.asarray(obstacle_nodes, np.float64).reshape(-1, dim)
             facets = np.asarray(obstacle_facets, np.int64).reshape(len(obstacle_facets), -1)
+            if spacing > 0:
+                obstacle_nodes, facets = subdivide_facets(obstacle_nodes, facets, spacing)
             pairs = np.concatenate([facets[:, [a, b]] for a in range(facets.shape[1])
                                     for b in range(a + 1, facets.shape[1])]) + n_body
             rest = np.concatenate([rest, obstacle_nodes])

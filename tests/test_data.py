@@ -126,3 +126,26 @@ def test_bad_inputs():
                         node_type=np.zeros(mesh.n_nodes, dtype=int))
     with pytest.raises(ValueError, match="the graph has 2 levels but the model needs 3"):
         LearnedSimulator("bsms_gnn", 2, n_levels=3)(graph)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_obstacle_facets_are_subdivided_without_changing_the_geometry(dim):
+    from bsms.data import subdivide_facets
+    from datagen.scenes.base import outline
+
+    domain = shapes.rectangle(1.0, 0.6, 0.3) if dim == 2 else shapes.box((1.0, 0.6, 0.8), 0.5)
+    nodes, facets = outline(domain)
+    fine_nodes, fine_facets = subdivide_facets(nodes, facets, 0.1)
+
+    def measure(n, f):
+        if dim == 2:
+            return np.linalg.norm(n[f[:, 1]] - n[f[:, 0]], axis=1)
+        return 0.5 * np.linalg.norm(np.cross(n[f[:, 1]] - n[f[:, 0]], n[f[:, 2]] - n[f[:, 0]]), axis=1)
+
+    assert measure(fine_nodes, fine_facets).sum() == pytest.approx(measure(nodes, facets).sum(), rel=1e-12)
+    edges = [fine_facets[:, [a, (a + 1) % dim]] for a in range(dim)] if dim == 3 else [fine_facets]
+    lengths = np.concatenate([np.linalg.norm(fine_nodes[e[:, 0]] - fine_nodes[e[:, 1]], axis=1) for e in edges])
+    assert lengths.max() <= 0.1 + 1e-12 and lengths.min() > 0
+    assert len(np.unique(np.round(fine_nodes, 9), axis=0)) == len(fine_nodes), "shared points are merged"
+    for corner in nodes:  # the original corners are kept
+        assert np.isclose(np.linalg.norm(fine_nodes - corner, axis=1).min(), 0.0)

@@ -70,6 +70,44 @@ def test_vibrating_bar_defaults_reproduce_the_closed_form():
     assert rmse < 0.01 * vibrating_bar.amplitude(p)
 
 
+@pytest.mark.parametrize("dim", [1, 2])
+def test_sticky_wall_mirrors_the_extra_layer(dim):
+    """Layer nodes beyond the bar's fixed end get minus the velocity at their reflection across x = 0."""
+    import dataclasses
+
+    import torch
+
+    from datagen.mesh import with_extra_layer
+    from datagen.mpm.boundary import Mirror, mesh_conditions
+
+    scene = vibrating_bar.build(vibrating_bar.params({"dim": dim}))
+    extended = with_extra_layer(scene.domain)
+    nodes = extended.mesh.nodes
+    conditions = mesh_conditions(scene.domain, extended, scene.walls, [])
+    mirror = conditions[-1]
+    assert isinstance(mirror, Mirror) and mirror.ghosts.numel() > 0
+    assert (nodes[mirror.ghosts.numpy(), 0] < 0).all()
+    linear = torch.tensor(nodes.T, dtype=torch.float64)  # v = x is odd about x = 0 in its first component
+    ghosts = mirror.ghosts.numpy()
+    got = mirror.apply(linear.clone())[:, ghosts].numpy()
+    np.testing.assert_allclose(got[0], nodes[ghosts, 0], atol=1e-12)
+    if dim == 2:
+        np.testing.assert_allclose(got[1], -nodes[ghosts, 1], atol=1e-12)
+    plain = [dataclasses.replace(w, mirror=False) for w in scene.walls]
+    assert not any(isinstance(c, Mirror) for c in mesh_conditions(scene.domain, extended, plain, []))
+
+
+def test_vibrating_bar_2d_strip_reproduces_the_closed_form():
+    """The 2D strip (slip walls, nu = 0) at 80 cells: RMSE < 1% of amplitude (measured 0.98%, 1.56% before
+    the sticky wall mirrored its extra-layer nodes; what remains is mostly the unstructured triangulation:
+    a -0.3% frequency and -0.5% amplitude error, against -0.09% and +0.11% for the 1D bar)."""
+    traj = datagen.simulate({"scene": "vibrating_bar", "params": {"dim": 2}})
+    p = traj.config["params"]
+    cm = traj.diagnostics["center_of_mass"][:, 0]
+    rmse = np.sqrt(np.mean((cm - vibrating_bar.center_of_mass(p, traj.times)) ** 2))
+    assert rmse < 0.01 * vibrating_bar.amplitude(p)
+
+
 def test_linear_kernel_shows_cell_crossing_stress_noise():
     """Same bar, MUSL strain update for both kernels (the linear hat blows up with plain FLIP)."""
     noise = {}

@@ -43,13 +43,17 @@ def _tip_deflection(kernel: str, params: dict, solver: dict | None = None) -> fl
 
 
 def test_cantilever_matches_the_reference_at_every_mesh_rotation():
-    # mesh 0.4 m: the paper's 0.5 m deflects about 5% more than this reference, because the sticky
-    # wall pins the extra-layer nodes beyond x = 0 (a softer clamp; mirroring those nodes instead
-    # brings it to 0.5%, see the benchmark's convergence note). Not a kernel or rotation effect.
+    # The paper's 0.5 m mesh. The sticky wall at x = 0 mirrors its extra-layer nodes (v_ghost = -v at their
+    # reflection): holding them at rest put the clamp about 0.1 m outside x = 0 and deflected 4.8% more than
+    # the reference (now +0.8%). Measured changes with rotation: 15 deg +5.0% (a mesh effect, see below),
+    # 30 deg +0.1%, 45 deg -0.6%.
+    # At 15 deg the triangulation is irregular next to the wall and the beam turns ~0.007 rad more at the root
+    # (a rigid rotation added to the upright profile); it shrinks with dt (1.505 m at this CFL, 1.482 m at
+    # dt = 2e-4 s) and is there with or without the mirror, so it is not the wall condition.
     ref = _tip_deflection("bspline", {"particle_spacing": 0.125}, {"grid_spacing": 0.25})
     assert 1.2 < ref < 1.6  # about twice the static Euler-Bernoulli deflection, 0.74 m
-    upright = _tip_deflection("umls", {"mesh_size": 0.4})
+    upright = _tip_deflection("umls", {"mesh_size": 0.5})
     assert abs(upright - ref) < 0.05 * ref
     for angle in (15.0, 30.0, 45.0):
-        rotated = _tip_deflection("umls", {"mesh_size": 0.4, "rotation": angle})
+        rotated = _tip_deflection("umls", {"mesh_size": 0.5, "rotation": angle})
         assert abs(rotated - upright) < 0.05 * upright
