@@ -72,6 +72,9 @@ def error_curves(curves: dict[str, list[np.ndarray]], frame_dt: float, path, bou
         ax.fill_between(t, np.nanmin(stacked, axis=0), np.nanmax(stacked, axis=0), color=line.get_color(), alpha=0.2)
     if bound is not None:
         ax.axhline(bound, color="k", ls="--", lw=0.8, label="instability bound")
+    values = [np.asarray(line.get_ydata(), dtype=float) for line in ax.get_lines()]
+    top = max((v[np.isfinite(v)].max() for v in values if np.isfinite(v).any()), default=1.0)
+    ax.set_ylim(bottom=max(ax.get_ylim()[0], 1e-6 * top))  # ranges that touch 0 (exact early frames) stay readable
     ax.set_xlabel("simulated time (s)")
     ax.set_ylabel("position RMSE (m)")
     ax.set_title("rollout error")

@@ -23,6 +23,13 @@ The background nodes move with their velocities, q_i <- q_i + dt v_i, and walls 
 moved positions (:class:`WallPlane`). An update sets F^{0s} <- F, F^{sn} <- I and rebuilds the
 kernel at the particles' current positions in the undeformed background.
 
+Between updates the weights and gradients are fixed, so for FLIP, PIC and APIC the transfers
+are fixed sparse products (:class:`Operators`, built at each update: one CSR matrix gathers
+every particle quantity of G2P, two scatter momentum and force), one sparse matrix-vector
+product per axis, and the particle matrices (F^{0s}, F^{sn}, F) are kept by component so that
+their 2x2 / 3x3 algebra is a few contiguous vector operations. Nodal masses and the active
+nodes are fixed too and cached. MUSL keeps the per-slot path of the eulerian mode.
+
 Contact trigger (``contact_margin``, adaptive only). Between updates two bodies only interact
 through background nodes they share at s, so bodies that approach each other would pass
 through one another. At each update the active nodes are split into clusters (connected through
@@ -35,6 +42,8 @@ trigger because they act on the moved node positions.
 
 from __future__ import annotations
 
+import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -50,7 +59,7 @@ from .materials import Material
 __all__ = [
     "Model", "State", "SimulationError", "step", "compute_kernel", "cfl_time_step", "diagnostics",
     "kirchhoff_stress", "KERNELS", "TRANSFERS", "REFERENCES", "Reference", "WallPlane", "Grip",
-    "kernel_rebuilds",
+    "kernel_rebuilds", "Operators",
 ]
 
 REFERENCES = ("eulerian", "total", "adaptive")
@@ -113,6 +122,15 @@ class Model:
             raise ValueError(f"unknown transfer {self.transfer!r}; choose one of {sorted(TRANSFERS)}")
         if (self.kernel == "bspline") != isinstance(self.background, Grid):
             raise ValueError("the bspline kernel needs a Grid background and the mesh kernels MeshTables")
+        if self.wall_planes:  # the planes stacked, for testing every node against all of them at once
+            planes = self.wall_planes
+            column = lambda f: torch.stack([torch.as_tensor(f(w)).to(planes[0].normal) for w in planes])  # noqa: E731
+            walls = {"normal": column(lambda w: w.normal), "offset": column(lambda w: w.offset)[:, None],
+                     "low": column(lambda w: -w.tol)[:, None], "high": column(lambda w: w.depth)[:, None],
+                     "tangents": column(lambda w: w.tangents),
+                     "lower": column(lambda w: w.lower - w.margin)[:, :, None],
+                     "upper": column(lambda w: w.upper + w.margin)[:, :, None]}
+            object.__setattr__(self, "_walls", walls)
 
     @property
     def n_nodes(self) -> int:
@@ -171,6 +189,10 @@ class WallPlane:
         mask = self.members(q)
         if not bool(mask.any()):
             return v
+        return self.apply_to(v, mask)
+
+    def apply_to(self, v: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Constrain the nodal velocities v[:, mask] (v: (d, N); mask: bool (N,) or indices), in place."""
         vi = v[:, mask]
         n = self.normal[:, None]
         vn = (vi * n).sum(0)
@@ -202,11 +224,14 @@ class Grip:
 class Reference:
     """The reference configuration s of the total/adaptive modes.
 
-    kernel: the kernel at the particles' positions at s.
-    F0s, Fsn: (P, d, d) F^{0s} and F^{sn}. nodes: (d, N) moved node positions q_i (q_i^s = the
-    background's nodes). active: the nodes in the kernel's support. rebuilds: kernels computed
+    kernel: the kernel at the particles' positions at s; operators: its fixed sparse transfer
+    operators (:class:`Operators`, None for transfers that use the slot path).
+    F0s, Fsn: (P, d, d) F^{0s} and F^{sn}, stored by component ((d, d, P) memory, see
+    :func:`by_component`). nodes: (d, N) moved node positions q_i (q_i^s = the
+    background's nodes). active: (N,) bool, the nodes in the kernel's support. rebuilds: kernels computed
     so far; contact_rebuilds: how many of them the contact trigger forced. cluster: (N,) cluster
     of each active node (-1: inactive); gaps: (C, C) gap between clusters at s (inf on the diagonal).
+    drift, wall_gap: while drift < wall_gap no node can be on a wall plane, and the test is skipped.
     """
 
     kernel: KernelResult | None
@@ -219,6 +244,9 @@ class Reference:
     cluster: torch.Tensor | None = None
     gaps: torch.Tensor | None = None
     stale: str = ""  # why the next step rebuilds: "strain" or "contact"; "" while current
+    operators: Operators | None = None
+    drift: float = 0.0  # bound on max_i |q_i - q_i^s|: the sum over the steps of dt max_i |v_i|
+    wall_gap: float = 0.0  # smallest distance at s from an active node to a wall plane's band
 
 
 @dataclass(frozen=True)
@@ -284,9 +312,8 @@ def kirchhoff_stress(model: Model, F: torch.Tensor) -> torch.Tensor:
     return tau
 
 
-def _force_stress(model: Model, state: State) -> torch.Tensor:
-    """(P, d, d) the stress the nodal force needs: tau (eulerian), tau (F^{sn})^-T = P (F^{0s})^T
-    in a reference configuration (A-ULMPM App. B eq. 44), plus the viscous Kirchhoff stress."""
+def _stress(model: Model, state: State) -> torch.Tensor:
+    """(P, d, d) the Kirchhoff stress tau of every particle plus the viscous Kirchhoff stress."""
     tau = kirchhoff_stress(model, state.F)
     if state.velocity_gradient is not None:
         L = state.velocity_gradient
@@ -297,6 +324,13 @@ def _force_stress(model: Model, state: State) -> torch.Tensor:
                 sel = slice(None) if ids is None else ids
                 rate = L[sel] + L[sel].transpose(-1, -2)
                 tau[sel] = tau[sel] + (eta * J[sel])[:, None, None] * rate
+    return tau
+
+
+def _force_stress(model: Model, state: State) -> torch.Tensor:
+    """(P, d, d) the stress the nodal force needs: tau (eulerian), tau (F^{sn})^-T = P (F^{0s})^T
+    in a reference configuration (A-ULMPM App. B eq. 44)."""
+    tau = _stress(model, state)
     if state.reference is not None:
         tau = tau @ linalg.inv_transpose(state.reference.Fsn)
     return tau
@@ -388,12 +422,27 @@ def constrain(model: Model, state: State, v: torch.Tensor) -> torch.Tensor:
     ref = state.reference
     if ref is None or model.wall_planes is None:
         return apply_conditions(v, model.conditions)
-    if model.wall_planes:  # only nodes inside the kernel's support carry velocity
-        sub, q = v[:, ref.active], ref.nodes[:, ref.active]
-        for plane in model.wall_planes:
-            sub = plane.apply(sub, q)
-        v[:, ref.active] = sub
+    if model.wall_planes and ref.drift >= ref.wall_gap:  # only nodes in the kernel's support carry velocity
+        nodes, members = _wall_members(model, ref)
+        for j, hit in enumerate(members.any(1).tolist()):
+            if hit:
+                model.wall_planes[j].apply_to(v, nodes[members[j]])
     return apply_conditions(v, model.pinned)
+
+
+def _wall_members(model: Model, ref: Reference) -> tuple[torch.Tensor, torch.Tensor]:
+    """The active nodes at their moved positions on the wall planes, all planes at once (the
+    test of :meth:`WallPlane.members`): (m,) candidate node ids and (planes, m) bool membership."""
+    table = model._walls
+    height = table["normal"] @ ref.nodes - table["offset"]  # (n, N)
+    near = (height >= table["low"]) & (height <= table["high"])
+    nodes = near.any(0).nonzero()[:, 0]
+    nodes = nodes[ref.active[nodes]]
+    inside = near[:, nodes]
+    if table["tangents"].shape[1]:
+        along = table["tangents"] @ ref.nodes[:, nodes]  # (n, d-1, m)
+        inside &= ((along >= table["lower"]) & (along <= table["upper"])).all(1)
+    return nodes, inside
 
 
 def grid_update(model: Model, state: State, nodal: torch.Tensor, dt: float) -> Nodal:
@@ -632,22 +681,44 @@ def _rebuild(model: Model, state: State, dt: float, contact: bool = False) -> St
     cluster = gaps = None
     if model.reference == "adaptive" and model.contact_margin is not None:
         cluster, gaps = _clusters(model, k)
-    eye = linalg.identity_like(state.F).expand_as(state.F).clone()
+    d, n = model.dim, len(state.x)
+    eye = linalg.identity_like(state.F)[:, :, None].expand(d, d, n).contiguous()
     ref = Reference(
-        kernel=k, F0s=state.F, Fsn=eye, nodes=model.node_positions.T.clone(),
-        active=torch.unique(k.index[k.index >= 0]),
+        kernel=k, F0s=_matrices(_components(state.F).contiguous()), Fsn=_matrices(eye),
+        nodes=model.node_positions.T.clone(), active=_support(model, k),
         rebuilds=(old.rebuilds if old is not None else 0) + 1,
         contact_rebuilds=(old.contact_rebuilds if old is not None else 0) + int(contact),
-        cluster=cluster, gaps=gaps,
+        cluster=cluster, gaps=gaps, operators=_operators(model, state, k),
     )
+    ref = replace(ref, wall_gap=_wall_gap(model, ref))
     cell = k.cell if k.cell is not None else state.cell
     return replace(state, reference=ref, affine=affine, cell=cell)
+
+
+def _support(model: Model, k: KernelResult) -> torch.Tensor:
+    """(N,) bool: the nodes in the support of kernel k."""
+    active = torch.zeros(model.n_nodes, dtype=torch.bool, device=k.index.device)
+    active[k.index[k.index >= 0]] = True
+    return active
+
+
+def _wall_gap(model: Model, ref: Reference) -> float:
+    """The smallest distance at s from an active node to the band [-tol, depth] of heights above
+    a wall plane (tangential extents ignored: a lower bound); 0 without wall planes."""
+    if not model.wall_planes:
+        return 0.0
+    table = model._walls
+    height = (table["normal"] @ ref.nodes - table["offset"])[:, ref.active]
+    gap = torch.maximum(table["low"] - height, height - table["high"])
+    return max(float(gap.min()), 0.0) if gap.numel() else 0.0
 
 
 def _contact_due(model: Model, ref: Reference) -> bool:
     """The contact trigger: two clusters may have come within contact_margin cells."""
     if ref.gaps is None or ref.gaps.shape[0] < 2:
         return False
+    if 2.0 * ref.drift < float(ref.gaps.min()) - model.contact_margin * model.cell_size:
+        return False  # D_a + D_b <= 2 drift: no pair can be due
     active = ref.cluster >= 0
     moved = (ref.nodes - model.node_positions.T).norm(dim=0)[active]
     D = moved.new_zeros(ref.gaps.shape[0]).scatter_reduce(0, ref.cluster[active], moved, "amax")
@@ -661,23 +732,195 @@ def _step_reference(model: Model, state: State, dt: float) -> State:
         state = _rebuild(model, state, dt)
     elif ref.stale:
         state = _rebuild(model, state, dt, contact=ref.stale == "contact")
-    k = state.reference.kernel
-    p2g, g2p = TRANSFERS[model.transfer]
-    grid = grid_update(model, state, p2g(model, state, k), dt)
-    if model.grips:
-        grid = _hold_grips(model, state, k, grid)
-    new = g2p(model, state, k, grid, dt)
+    if state.reference.operators is not None:
+        new, v_nodes = _transfer_by_operators(model, state, dt)
+    else:
+        k = state.reference.kernel
+        p2g, g2p = TRANSFERS[model.transfer]
+        grid = grid_update(model, state, p2g(model, state, k), dt)
+        if model.grips:
+            grid = _hold_grips(model, state, k, grid)
+        new, v_nodes = g2p(model, state, k, grid, dt), grid.v_new
     if model.grips:
         new = _move_grips(model, state, new, dt)
     _check_finite(model, state, new, dt)
-    ref = replace(new.reference, nodes=state.reference.nodes + dt * grid.v_new)
+    speed = float(v_nodes.abs().max()) * math.sqrt(model.dim) if v_nodes.numel() else 0.0  # >= max_i |v_i|
+    ref = replace(new.reference, nodes=state.reference.nodes + dt * v_nodes, drift=new.reference.drift + dt * speed)
     if model.reference == "adaptive":
-        marked = ((linalg.det(ref.Fsn) - 1.0).abs() >= model.epsilon).to(ref.Fsn.dtype).mean()
+        marked = ((_det(_components(ref.Fsn)) - 1.0).abs() >= model.epsilon).to(ref.Fsn.dtype).mean()
         if float(marked) >= model.fraction:  # A-ULMPM eq. 33
             ref = replace(ref, stale="strain")
         elif _contact_due(model, ref):
             ref = replace(ref, stale="contact")
     return replace(new, reference=ref, time=state.time + dt, step=state.step + 1)
+
+
+# ----------------------------------------------------------------------------- fixed transfer operators
+# Between updates of the reference configuration the weights and gradients do not change, so
+# P2G and G2P are fixed sparse products, built once per update (:class:`Operators`). The
+# particle matrices of this path (F^{0s}, F^{sn}, F, stresses) are stored by component, (d, d, P)
+# in memory, and handed out as (P, d, d) views: 2x2 / 3x3 algebra is then a few operations on
+# contiguous vectors instead of batched matrix products of tiny matrices.
+OPERATOR_TRANSFERS = ("flip", "pic", "apic")  # musl keeps the slot path
+
+
+def _components(a: torch.Tensor) -> torch.Tensor:
+    """(P, d, d) matrices -> the (d, d, P) view of their components."""
+    return a.permute(1, 2, 0)
+
+
+def _matrices(c: torch.Tensor) -> torch.Tensor:
+    """(d, d, P) components -> the (P, d, d) view of the matrices."""
+    return c.permute(2, 0, 1)
+
+
+def _mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Products a_p b_p of matrices given by components (d, d, P) -> (d, d, P)."""
+    out = a[:, 0, None] * b[None, 0]
+    for j in range(1, a.shape[1]):
+        out.addcmul_(a[:, j, None], b[None, j])
+    return out
+
+
+def _det(a: torch.Tensor) -> torch.Tensor:
+    """Determinants of matrices given by components (d, d, P) -> (P,)."""
+    if a.shape[0] == 2:
+        return a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+    return linalg.det(_matrices(a))
+
+
+def _inv(a: torch.Tensor) -> torch.Tensor:
+    """Inverses of matrices given by components (d, d, P) -> (d, d, P)."""
+    if a.shape[0] == 2:
+        adjugate = torch.stack([a[1, 1], -a[0, 1], -a[1, 0], a[0, 0]]).view(a.shape)
+        return adjugate / _det(a)
+    return _components(linalg.inv(_matrices(a)))
+
+
+@dataclass(frozen=True, eq=False)
+class Operators:
+    """The fixed transfer operators of a reference configuration: sparse CSR matrices.
+
+    With W the (P, N) weights w_ip, G_b the (P, N) gradient components (grad_s w_ip)_b and (APIC)
+    R_b the (P, N) weighted offsets w_ip (x_i - x_p)_b at s, M = diag(m_p), V = diag(V_p^0):
+    gather: (J P, N) the row blocks [W; G_0; ...; G_{d-1}] (APIC: then R_0, ..., R_{d-1}); one
+    product with a nodal velocity component v_a (N,) gives, per particle, sum_i w_ip v_ia, the
+    row a of grad_s v and (APIC) the row a of B = sum_i w_ip v_i (x_i - x_p)^T. weight: (P, N)
+    W alone (FLIP: the velocity increment), else None.
+    scatter: (N, S P) [W^T M] (APIC: [W^T M, R_0^T M, ...]): component a of the nodal momentum
+    from [v_pa] (APIC: [v_pa, C_p[a, 0], ...], C = B D^-1, UMLS eq. 48). force: (N, d P)
+    [-G_0^T V, ..., -G_{d-1}^T V]: component a of f_i = -sum_p V_p^0 sigma~_p grad_s w_ip from
+    the row a of sigma~ = tau (F^{sn})^-T (A-ULMPM App. B eq. 44).
+    inv_mass, active: (N,) 1/m_i and 1.0 on the active nodes, 0 elsewhere.
+    inertia_inv: (d, d, P) D_p^-1 by component (APIC), else None.
+    """
+
+    gather: torch.Tensor
+    weight: torch.Tensor | None
+    scatter: torch.Tensor
+    force: torch.Tensor
+    inv_mass: torch.Tensor
+    active: torch.Tensor
+    inertia_inv: torch.Tensor | None = None
+
+
+def _csr(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """A CSR matrix from COO entries (int32 indices where they fit: faster products)."""
+    order = torch.argsort(rows * shape[1] + cols)
+    crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=rows.device)
+    crow[1:] = torch.bincount(rows, minlength=shape[0]).cumsum(0)
+    index = torch.int32 if len(values) < 2**31 and max(shape) < 2**31 else torch.int64
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+        return torch.sparse_csr_tensor(crow.to(index), cols[order].to(index), values[order], size=shape)
+
+
+def _leading_rows(a: torch.Tensor, rows: int) -> torch.Tensor:
+    """The first ``rows`` rows of CSR matrix a, sharing its memory."""
+    crow = a.crow_indices()[:rows + 1]
+    end = int(crow[-1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(crow, a.col_indices()[:end], a.values()[:end], size=(rows, a.shape[1]))
+
+
+def _operators(model: Model, state: State, k: KernelResult) -> Operators | None:
+    """The transfer operators of kernel k (None for transfers that keep the slot path)."""
+    if model.transfer not in OPERATOR_TRANSFERS:
+        return None
+    n_p, n_k = k.index.shape
+    n = model.n_nodes
+    valid = k.index >= 0
+    p = torch.arange(n_p, device=k.index.device)[:, None].expand(n_p, n_k)[valid]
+    i = k.index[valid]
+    w = k.weight[valid]
+    grads = list(k.grad_axes[:, valid])
+    offsets = [w * r for r in k.offset_axes[:, valid]] if model.transfer == "apic" else []
+
+    def stacked(blocks: list[torch.Tensor], by_node: bool) -> torch.Tensor:
+        rows = p.repeat(len(blocks)) + torch.arange(len(blocks), device=p.device).repeat_interleave(len(p)) * n_p
+        if by_node:
+            return _csr(i.repeat(len(blocks)), rows, torch.cat(blocks), (n, len(blocks) * n_p))
+        return _csr(rows, i.repeat(len(blocks)), torch.cat(blocks), (len(blocks) * n_p, n))
+
+    m, v0 = state.mass[p], state.volume0[p]
+    mass = _scatter(k, (k.weight * state.mass[:, None])[None], n)[0]
+    active = mass > _MASS_FLOOR * state.mass.mean()
+    inertia_inv = None
+    if model.transfer == "apic":
+        inertia_inv = _components(linalg.inv(_moment(k, k.offset_axes, k.offset_axes))).contiguous()
+    gather = stacked([w, *grads, *offsets], by_node=False)
+    return Operators(
+        gather=gather, weight=_leading_rows(gather, n_p) if model.transfer == "flip" else None,
+        scatter=stacked([m * w, *(m * o for o in offsets)], by_node=True),
+        force=stacked([-v0 * g for g in grads], by_node=True),
+        inv_mass=torch.where(active, 1.0 / torch.where(active, mass, 1.0), 0.0),
+        active=active.to(mass.dtype), inertia_inv=inertia_inv,
+    )
+
+
+def _transfer_by_operators(model: Model, state: State, dt: float) -> tuple[State, torch.Tensor]:
+    """P2G, grid update and G2P of one step by the fixed operators (FLIP, PIC or APIC).
+
+    Every product is a sparse matrix times one vector, one per axis. Returns the new state
+    (without the grips' prescribed motion) and the constrained new nodal velocities (d, N).
+    Same equations as the slot path: A-ULMPM App. B eqs. 44-47.
+    """
+    ref = state.reference
+    ops, d = ref.operators, model.dim
+    Fsn = _components(ref.Fsn)
+    stress = _mm(_components(_stress(model, state)), _inv(Fsn).transpose(0, 1))  # tau (F^{sn})^-T
+    particle = state.v.T.contiguous()  # (d, P)
+    if model.transfer == "apic":  # nodes see v_p + C_p (x_i - x_p), C = B D^-1 (UMLS eq. 48)
+        C = _mm(_components(state.affine), ops.inertia_inv)  # (a, b, P)
+        particle = torch.cat([particle[:, None], C], 1).view(d, -1)
+    momentum = torch.stack([ops.scatter @ row for row in particle])
+    force = torch.stack([ops.force @ row for row in stress.reshape(d, -1)])
+    v_old = momentum * ops.inv_mass
+    v_new = torch.addcmul(v_old, force, ops.inv_mass, value=dt)
+    if model.gravity.any():
+        v_new.addcmul_(ops.active, dt * model.gravity[:, None])
+    if model.damping:
+        v_new = v_new / (1.0 + model.damping * dt)
+    v_new = constrain(model, state, v_new)
+    for grip, velocity in _held(model, state):
+        index = ref.kernel.index[grip.ids]
+        v_new[:, torch.unique(index[index >= 0])] = velocity[:, None]
+    out = torch.stack([ops.gather @ row for row in v_new]).view(d, -1, len(state.x))  # (a, J, P)
+    x = state.x + dt * out[:, 0].T
+    if model.transfer == "flip":
+        v = state.v + torch.stack([ops.weight @ row for row in v_new - v_old], 1)
+    else:
+        v = out[:, 0].T.contiguous()
+    grad_v = out[:, 1:1 + d]  # (a, b, P): d v_a / d X^s_b
+    Fsn_new = torch.add(Fsn, grad_v, alpha=dt)  # A-ULMPM eqs. 45-47
+    fields = {"x": x, "v": v, "F": _matrices(_mm(Fsn_new, _components(ref.F0s))),
+              "reference": replace(ref, Fsn=_matrices(Fsn_new))}
+    if model.transfer == "apic":  # B_p = sum_i w_ip v_i (x_i - x_p)^T
+        fields["affine"] = _matrices(out[:, 1 + d:])
+    if model.viscous:  # grad_x v = grad_s v (F^{sn})^-1
+        fields["velocity_gradient"] = _matrices(_mm(grad_v, _inv(Fsn)))
+    return replace(state, **fields), v_new
 
 
 # ----------------------------------------------------------------------------- diagnostics
