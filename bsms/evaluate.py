@@ -248,7 +248,7 @@ def evaluate(run_dir, compare=(), options: EvaluateConfig | None = None, progres
 
     run_dir = Path(run_dir)
     model, config, state = load_model(run_dir)
-    options = options or config_evaluate(config)
+    options = options or config.evaluate
     threads = torch.get_num_threads()
     if options.threads is not None:
         torch.set_num_threads(options.threads)
@@ -262,11 +262,12 @@ def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateCon
     from tqdm import tqdm
 
     from bsms import viz
-    from bsms.trainer import split_files
+    from bsms.trainer import run_dataset_config, split_files
     from datagen.dataset import load
 
     device = _device(options.device)
-    folder = Path(config.dataset.root) / _dataset_name(run_dir, config)
+    dataset_name = run_dataset_config(run_dir, config)["dataset"]
+    folder = Path(config.dataset.root) / dataset_name
     files = split_files(folder, options.split)[: options.trajectories]
     methods = [(config.name, model, config)]
     for other in compare:
@@ -339,21 +340,8 @@ def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateCon
                "solver": per_solver}
     with atomic_path(out / "metrics.json") as tmp:
         tmp.write_text(json.dumps(details, indent=1, default=_json_default))
-    report = _write_report(run_dir, config, state, options, files, rows, pictures, training)
+    report = _write_report(run_dir, config, state, options, files, rows, pictures, training, dataset_name)
     return {"rows": rows, "report": report}
-
-
-def _dataset_name(run_dir: Path, config) -> str:
-    saved = run_dir / "dataset.json"
-    if saved.is_file():
-        return json.loads(saved.read_text())["dataset"]
-    from datagen.generate import load_dataset_config
-
-    return load_dataset_config(config.dataset.config)["dataset"]
-
-
-def config_evaluate(config) -> EvaluateConfig:
-    return getattr(config, "evaluate", None) or EvaluateConfig()
 
 
 def _json_default(value):
@@ -374,13 +362,14 @@ def _write_tables(out: Path, rows: list[dict]) -> None:
         tmp.write_text(_table(rows, _COLUMNS) + "\n")
 
 
-def _write_report(run_dir: Path, config, state, options, files, rows, pictures, training) -> Path:
+def _write_report(run_dir: Path, config, state, options, files, rows, pictures, training,
+                  dataset_name: str) -> Path:
     learned = [r for r in rows if r["kind"] == "learned"]
     lines = [
         f"# Evaluation of run `{config.name}`",
         "",
         f"Model `{config.model.name}` after {int(state['step'])} training steps; {len(files)} `{options.split}` "
-        f"trajectories of dataset `{_dataset_name(run_dir, config)}`; rollouts from frame 0 over "
+        f"trajectories of dataset `{dataset_name}`; rollouts from frame 0 over "
         f"{'all frames' if options.steps is None else f'{options.steps} steps'}. Errors are position RMSE over "
         "free body nodes (m); times are wall seconds on this machine, measured in this run.",
         "",
@@ -449,7 +438,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         _, config, _ = load_model(args.run_dir)
-        options = copy.deepcopy(config_evaluate(config))
+        options = copy.deepcopy(config.evaluate)
         for key in ("split", "steps", "trajectories", "device", "threads"):
             if getattr(args, key) is not None:
                 setattr(options, key, getattr(args, key))

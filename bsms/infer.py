@@ -22,6 +22,7 @@ from bsms.checkpoint import CheckpointError, load_model
 from bsms.config import ConfigError
 from bsms.data import NodeType, Scenario
 from bsms.rollout import DEFAULT_BOUND, body_size, rollout, rollout_metrics
+from bsms.trainer import run_dataset_config
 from datagen.atomic import atomic_path
 from datagen.mesh import Mesh, MeshError
 
@@ -30,19 +31,6 @@ __all__ = ["InferError", "infer", "main"]
 
 class InferError(ValueError):
     """An input of ``infer`` that cannot be used; the message names the file and the fix."""
-
-
-def _dataset_config(run_dir: Path, config) -> dict:
-    saved = run_dir / "dataset.json"
-    if saved.is_file():
-        return json.loads(saved.read_text())
-    from datagen.generate import load_dataset_config
-
-    try:
-        return load_dataset_config(config.dataset.config)
-    except ConfigError as exc:
-        raise CheckpointError(f"run folder {run_dir} has no dataset.json and its dataset config cannot be read "
-                              f"({exc}); run infer from the folder train.py ran in") from None
 
 
 def read_mesh(path, dim: int, run_dir) -> Mesh:
@@ -94,7 +82,7 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     if not paths:
         raise InferError("give at least one mesh file (--mesh FILE)")
     bodies = [read_mesh(p, dim, run_dir) for p in paths]
-    dconfig = _dataset_config(run_dir, config)
+    dconfig = run_dataset_config(run_dir, config)
     sim_config = place(dconfig["family"], [str(p) for p in paths], dconfig, overrides or {})
     if steps is not None:
         sim_config.setdefault("output", {})["frames"] = int(steps)

@@ -35,7 +35,7 @@ from bsms.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from bsms.config import ConfigError, apply_overrides, build, load, to_dict
 from bsms.data import FrameDataset, GraphOptions, NoiseOptions
 from bsms.evaluate import EvaluateConfig
-from bsms.models.simulator import CORES, LearnedSimulator
+from bsms.models.simulator import LearnedSimulator
 from datagen.atomic import atomic_path
 
 __all__ = [
@@ -213,6 +213,21 @@ def prepare_dataset(config: Config, base: Path | None = None, progress: bool = T
     return folder
 
 
+def run_dataset_config(run_dir, config: Config) -> dict:
+    """The generating dataset config of a run: its ``dataset.json``, else ``config.dataset.config``."""
+    from bsms.checkpoint import CheckpointError
+    from datagen.generate import load_dataset_config
+
+    saved = Path(run_dir) / "dataset.json"
+    if saved.is_file():
+        return json.loads(saved.read_text())
+    try:
+        return load_dataset_config(config.dataset.config)
+    except ConfigError as exc:
+        raise CheckpointError(f"run folder {run_dir} has no dataset.json and its dataset config cannot be read "
+                              f"({exc}); run from the folder train.py ran in") from None
+
+
 def split_files(folder: Path, split: str) -> list[Path]:
     files = sorted((Path(folder) / split).glob("*.h5"))
     if not files:
@@ -224,7 +239,6 @@ def split_files(folder: Path, split: str) -> list[Path]:
 # ----------------------------------------------------------------------------- model and schedule
 def build_model(config: Config, dim: int) -> LearnedSimulator:
     """The learned simulator a config describes, for dimension ``dim`` (untrained)."""
-    assert config.model.name in CORES
     return LearnedSimulator(
         config.model.name, dim, n_levels=config.graph.levels, contact=config.graph.contact,
         n_constants=len(config.graph.constants), latent=config.model.latent, n_passes=config.model.passes,
@@ -258,19 +272,6 @@ def _set_rng_state(state: dict) -> None:
 
 
 # ----------------------------------------------------------------------------- trainer
-class _Items(torch.utils.data.Dataset):
-    """Adapter so a DataLoader's batch sampler can hand (index, noise seed) keys to FrameDataset."""
-
-    def __init__(self, dataset: FrameDataset):
-        self.dataset = dataset
-
-    def __len__(self) -> int:
-        return len(self.dataset)
-
-    def __getitem__(self, key):
-        return self.dataset[key]
-
-
 def _collate(graphs):
     return Batch.from_data_list(graphs)
 
@@ -436,7 +437,7 @@ class Trainer:
     def _loader(self, start: int, stop: int):
         keys = [self._keys(s) for s in range(start, stop)]
         return torch.utils.data.DataLoader(
-            _Items(self.train_set), batch_sampler=keys, collate_fn=_collate, num_workers=self.config.train.workers,
+            self.train_set, batch_sampler=keys, collate_fn=_collate, num_workers=self.config.train.workers,
             persistent_workers=False,
         )
 
