@@ -20,11 +20,14 @@ edge, about 2.4 mean edges on gmsh meshes) reaches two rings inwards but only on
 outwards. Near a flat face eta keeps the deep inner nodes small and all weights stay
 non-negative; near a convex crease the copies of the side face also pull the weighted centre
 of the samples inwards (they extend down the side, while beyond the crease there is only the
-single row of bisector copies), so the far inner nodes of a few particles get weights of
-about -1e-5 to -3e-4 (about 0.05% of the particles in boundary cells, all within one element
-of a crease or, on coarse spheres, of the curved surface). Thickness 0.5 to 2, longer or
-shorter crease copies, and linking every boundary node to all copies of its prisms were
-measured and do not remove them (thickness 0.85 to 1.0 is best); 2D has no such case.
+single row of bisector copies), so plain MLS gives the far inner nodes of a few particles
+weights of about -1e-5 to -3e-4 (about 0.1% of the particles in boundary cells, all within one
+element of a crease or, on coarse spheres, of the curved surface). Thickness 0.5 to 2, longer
+or shorter crease copies, and linking every boundary node to all copies of its prisms were
+measured and do not remove them (thickness 0.85 to 1.0 is best); 2D has no such case. The
+kernel therefore projects those rows onto the closest non-negative, linearly exact kernel
+(:func:`datagen.mpm.kernels.nonnegative_mls`); with the layer that changes them by about the
+size of the negative weights.
 
 Walls act on the layer too (datagen/mpm/boundary.py): a layer node next to a wall node takes
 that wall's condition. Beyond a sticky wall the layer nodes are mirror ghosts, minus the
@@ -299,10 +302,11 @@ def with_extra_layer(mesh: Mesh, thickness: float = 1.0, min_quality: float = 0.
     """Add one layer of cells outside the boundary of ``mesh`` (see the module docstring).
 
     thickness: offset of the copies in units of the mean length of the copied node's edges
-        (mitred at corners); the solver uses the same default. With it, UMLS weights of
-        particles in boundary cells are non-negative in 2D; in 3D a few stay slightly
-        negative within one element of convex creases and curved boundaries, whatever the
-        thickness (measured in tests/test_kernels.py, explained in the module docstring).
+        (mitred at corners); the solver uses the same default. With it, plain MLS weights of
+        particles in boundary cells are non-negative in 2D; in 3D a few are slightly negative
+        within one element of convex creases and curved boundaries, whatever the thickness
+        (measured in tests/test_kernels.py, explained in the module docstring), and the
+        UMLS kernel projects them (``umls_kernel(..., nonnegative=True)``).
     min_quality: layer cells below this quality get the offsets of their outside nodes
         halved (up to eight times), e.g. inside holes narrower than the layer.
 

@@ -3,10 +3,19 @@
 import numpy as np
 import pytest
 import torch
+from scipy import optimize
 
 from datagen import shapes
 from datagen.mesh import Mesh, with_extra_layer
-from datagen.mpm.kernels import Grid, MeshTables, bspline_kernel, linear_kernel, umls_kernel
+from datagen.mpm.kernels import (
+    Grid,
+    MeshTables,
+    bspline_kernel,
+    linear_kernel,
+    mls_linear_weights,
+    nonnegative_mls,
+    umls_kernel,
+)
 
 
 def _sample(mesh: Mesh, cells: np.ndarray, per_cell: int, seed: int = 0) -> np.ndarray:
@@ -60,37 +69,122 @@ def test_partition_of_unity_and_linear_reproduction(gmsh_mesh, layer):
 def test_extra_layer_keeps_weights_nonnegative(gmsh_mesh):
     """UMLS §2.3.5: boundary cells without the layer give negative weights; the layer removes them.
 
-    Strict (no weight below -1e-10) in every cell of the 2D meshes, corners included, and in
-    the interior cells of the 3D ones. In 3D boundary cells one layer cannot reach as far out
-    as the B-spline support reaches in (datagen/layer.py explains it): near convex creases and
-    curved faces a few far inner nodes keep weights down to about -2e-4, whatever the layer
-    thickness. This is the tightest bound we measured, not the property we want; the test pins
-    how small, how rare and where they are, so that any growth shows.
+    Plain MLS (nonnegative=False) with the layer is non-negative in every cell of the 2D meshes,
+    corners included, and in the interior cells of the 3D ones. In 3D boundary cells one layer
+    cannot reach as far out as the B-spline support reaches in (datagen/layer.py explains it):
+    near convex creases and curved faces a few far inner nodes keep weights down to about -1e-4.
+    The test pins how small, how rare and where they are. The kernel the solver uses
+    (nonnegative=True, the default) replaces exactly those rows by the closest non-negative
+    kernel, so it has no weight below 0 anywhere.
     """
     name, mesh = gmsh_mesh
     bare, layered = MeshTables.build(mesh), MeshTables.build(with_extra_layer(mesh))
     boundary = _boundary_cells(mesh)
     interior = torch.tensor(_sample(mesh, np.flatnonzero(~boundary), 10, seed=3))
-    assert umls_kernel(layered, interior).weight.min() >= -1e-10
+    assert umls_kernel(layered, interior, nonnegative=False).weight.min() >= -1e-10
     edge = torch.tensor(_sample(mesh, np.flatnonzero(boundary), 10, seed=4))
-    assert umls_kernel(bare, edge).weight.min() < -1e-2  # the degeneration the layer fixes (UMLS Fig. 5)
+    assert umls_kernel(bare, edge, nonnegative=False).weight.min() < -1e-2  # UMLS Fig. 5
     k = umls_kernel(layered, edge)
+    assert k.weight.min() >= 0.0
+    assert max(_identity_errors(layered, k, edge)) < 1e-10
+    plain = umls_kernel(layered, edge, nonnegative=False)
     if mesh.dim == 2:
-        assert k.weight.min() >= -1e-10
+        assert plain.weight.min() >= -1e-10
+        assert torch.equal(k.weight, plain.weight) and torch.equal(k.grad, plain.grad)
         return
-    negative = (k.weight < -1e-10).any(dim=1).numpy()
-    assert k.weight.min() >= -5e-4
+    negative = (plain.weight < 0).any(dim=1).numpy()
+    assert plain.weight.min() >= -5e-4
     assert negative.mean() < 0.002
     # the far inner nodes of the sample, never the nearby ones: each such weight is below 1% of
     # the particle's largest weight
-    worst = torch.where(k.weight < -1e-10, -k.weight, 0.0).amax(dim=1)
-    assert (worst <= 0.01 * k.weight.amax(dim=1)).all()
+    worst = torch.where(plain.weight < 0, -plain.weight, 0.0).amax(dim=1)
+    assert (worst <= 0.01 * plain.weight.amax(dim=1)).all()
+    # the projection changes those rows by about as much as their negative weights, no more
+    change = (k.weight - plain.weight).abs().amax(dim=1)
+    assert float(change.max()) <= 20 * float(worst.max())
     x = edge.numpy()[negative]
     if name == "box":  # within one element (0.15) of a crease: two walls closer than that
         walls = np.sort(np.minimum(x, np.array([1.0, 0.8, 0.6]) - x), axis=1)
         assert (walls[:, 1] < 0.15).all()
     else:  # sphere (element size 0.3): within one element of the surface
         assert (np.linalg.norm(x, axis=1) > 0.7).all()
+
+
+def test_nonnegative_kernel_on_meshes_without_the_layer(gmsh_mesh):
+    """Without the layer a third of the boundary particles need the projection: all weights
+    are >= 0, the identities stay exact and the other particles' kernels are untouched."""
+    _, mesh = gmsh_mesh
+    bare = MeshTables.build(mesh)
+    x = torch.tensor(_sample(mesh, np.flatnonzero(_boundary_cells(mesh)), 10, seed=4))
+    plain, k = umls_kernel(bare, x, nonnegative=False), umls_kernel(bare, x)
+    fixed = (plain.weight < 0).any(dim=1)
+    assert fixed.float().mean() > 0.2
+    assert k.weight.min() >= 0.0
+    assert max(_identity_errors(bare, k, x)) < 1e-10
+    assert torch.equal(k.weight[~fixed], plain.weight[~fixed]) and torch.equal(k.grad[~fixed], plain.grad[~fixed])
+    assert ((k.weight[fixed] == 0) & (plain.weight[fixed] != 0)).any(dim=1).all()  # nodes were dropped
+
+
+def _random_clouds(dim: int, rows: int, k: int, seed: int):
+    """Node offsets r (dim, R, K) around a particle at 0, skewed so that MLS weights go negative,
+    whose first dim+1 nodes are a simplex containing 0; sample weights d; the simplex's hat."""
+    rng = np.random.default_rng(seed)
+    r = rng.normal(size=(rows, k, dim)) + np.array([1.5] + [0.0] * (dim - 1))
+    bary = 0.3 / (dim + 1) + 0.7 * rng.dirichlet(np.ones(dim + 1), size=rows)
+    simplex = r[:, : dim + 1].copy()
+    simplex[:, dim] = -np.einsum("rn,rnd->rd", bary[:, :dim], simplex[:, :dim]) / bary[:, dim:]
+    r[:, : dim + 1] = simplex
+    d = rng.uniform(0.05, 1.0, size=(rows, k))
+    d[:, -1] = 0.0  # an empty slot
+    spans = simplex[:, 1:] - simplex[:, :1]  # gradients of the barycentric coordinates
+    rest = np.linalg.inv(np.swapaxes(spans, 1, 2))
+    hat_grad = np.zeros((rows, k, dim))
+    hat_grad[:, : dim + 1] = np.concatenate([-rest.sum(axis=1, keepdims=True), rest], axis=1)
+    hat = np.zeros((rows, k))
+    hat[:, : dim + 1] = bary
+    as_t = torch.tensor
+    return as_t(r.transpose(2, 0, 1).copy()), as_t(d), as_t(hat), as_t(hat_grad.transpose(2, 0, 1).copy())
+
+
+def _qp_reference(d: np.ndarray, r: np.ndarray):
+    """min sum w^2 / (2 d) subject to sum w = 1, sum w r = 0, w >= 0, by SLSQP."""
+    constraints = np.vstack([np.ones(d.size), r])
+    target = np.r_[1.0, np.zeros(r.shape[0])]
+    return optimize.minimize(
+        lambda v: 0.5 * np.sum(v * v / d), np.full(d.size, 1 / d.size), jac=lambda v: v / d,
+        method="SLSQP", bounds=[(0, None)] * d.size,
+        constraints={"type": "eq", "fun": lambda v: constraints @ v - target, "jac": lambda v: constraints},
+        options={"ftol": 1e-14, "maxiter": 500})
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_nonnegative_mls_solves_the_constrained_least_squares(dim):
+    """nonnegative_mls is the minimiser of sum w^2/d under linear reproduction and w >= 0: KKT
+    conditions to round-off, and the same optimum as a general-purpose QP solver."""
+    r, d, hat, hat_grad = _random_clouds(dim, 300, 10, seed=dim)
+    plain, _ = mls_linear_weights(d, r)
+    need = (plain < 0).any(dim=1)
+    assert need.float().mean() > 0.3
+    w, g = nonnegative_mls(d, r, hat, hat_grad)
+    assert w.min() >= 0.0
+    assert float((w.sum(1) - 1).abs().max()) < 1e-12
+    scale = r.abs().amax(dim=(0, 2))  # the simplex's last vertex can lie far out
+    assert float((torch.einsum("rk,ark->ra", w, r).abs().amax(dim=1) / scale).max()) < 1e-11
+    eye = torch.einsum("ark,brk->rab", g, r) - torch.eye(dim, dtype=r.dtype)
+    assert float(eye.abs().max()) < 1e-10
+    # KKT: w is MLS on its support A, and the fit of A is <= 0 at every other sampled node
+    active = w > 0
+    fit, _ = mls_linear_weights(d * active, r, evaluate=d)
+    assert float((fit - w)[active].abs().max()) < 1e-12
+    assert float(fit[~active & (d > 0)].max()) < 1e-12
+    # rows where MLS is non-negative are MLS itself
+    assert float((w - plain)[~need].abs().max()) < 1e-14
+    # a general QP solver agrees on a few rows
+    for row in np.flatnonzero(need.numpy())[:5]:
+        keep = d[row].numpy() > 0
+        result = _qp_reference(d[row].numpy()[keep], r[:, row].numpy()[:, keep])
+        assert result.success
+        np.testing.assert_allclose(w[row].numpy()[keep], result.x, atol=1e-6)
 
 
 def test_identities_in_one_dimension_and_for_the_other_kernels():
@@ -228,3 +322,22 @@ def test_without_eta_the_kernel_jumps_across_faces(crossing_mesh):
     dw, dg, h_local = _jumps(mesh, tables, eta=False)
     jumped = np.maximum(dw, dg * h_local) >= 1e-2
     assert jumped.mean() >= 0.25
+
+
+def test_nonnegative_kernel_is_continuous_across_faces(crossing_mesh):
+    """On the mesh without the layer, where many particles near the boundary need the
+    projection, weights and gradients stay continuous across faces (item 3's bounds)."""
+    mesh, _ = crossing_mesh
+    bare = MeshTables.build(mesh)
+    parts = [_crossings(mesh, 100_000, seed=seed) for seed in range(8, 16)]  # 8 points on every face
+    before, after, cells, h_local = (np.concatenate(part) for part in zip(*parts, strict=True))
+    plain = umls_kernel(bare, torch.tensor(before), nonnegative=False)
+    near = (plain.weight < 0).any(dim=1).numpy()
+    assert near.sum() >= 100
+    k0 = umls_kernel(bare, torch.tensor(before[near]))
+    k1 = umls_kernel(bare, torch.tensor(after[near]))
+    assert np.array_equal(k0.cell.numpy(), cells[near, 0]) and np.array_equal(k1.cell.numpy(), cells[near, 1])
+    w0, g0 = _dense(k0, bare.n_nodes)
+    w1, g1 = _dense(k1, bare.n_nodes)
+    assert float((w1 - w0).abs().max()) < 1e-4
+    assert ((g1 - g0).norm(dim=-1).amax(dim=1).numpy() * h_local[near]).max() < 1e-4

@@ -28,7 +28,7 @@ from .locate import CellLocator, LocateStatus, Location, locate
 
 __all__ = [
     "KernelResult", "MeshTables", "Grid", "umls_kernel", "linear_kernel", "bspline_kernel",
-    "quadratic_bspline", "mls_linear_weights",
+    "quadratic_bspline", "mls_linear_weights", "nonnegative_mls",
 ]
 
 _RING_CHUNK = 1 << 14  # cells per batch when tabulating ring adjacency
@@ -183,7 +183,8 @@ def quadratic_bspline(q: torch.Tensor) -> torch.Tensor:
     return outer.where(q >= 0.5, 0.75 - q * q)
 
 
-def mls_linear_weights(d: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def mls_linear_weights(d: torch.Tensor, r: torch.Tensor, *,
+                       evaluate: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """MLS kernel with the linear basis p(z) = [1, z - x_p] (UMLS eqs. 22-29).
 
     d: (P, K) sample weights d_i (0 in empty slots); r: (dim, P, K) the components of the
@@ -192,16 +193,23 @@ def mls_linear_weights(d: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, 
     the block inverse of M gives w_i = d_i/S (1 - m^T Q^-1 (r_i - m)) and
     grad w_i = d_i/S Q^-1 (r_i - m): one dim x dim inverse instead of (dim+1) x (dim+1).
     Rows with S = 0 (lost particles) give zeros.
+
+    evaluate: (P, K) weights e_i to evaluate the fit with: the moment matrix M is built from d
+    but the results are e_i p_i^T M^-1 p(0) and its gradient part (default e = d).
     """
     total = d.sum(dim=1)
     alive = total > 0
-    share = d / torch.where(alive, total, torch.ones_like(total))[:, None]  # d_i / S
+    inv_total = 1.0 / torch.where(alive, total, torch.ones_like(total))[:, None]
+    share = d * inv_total  # d_i / S
     r_p = r.permute(1, 0, 2)  # (P, dim, K) view
     m = torch.bmm(r_p, share[:, :, None])  # (P, dim, 1)
     rc = r_p - m
     src = rc * share[:, None, :]
     q = torch.bmm(src, rc.transpose(1, 2))
     q_inv = linalg.inv(torch.where(alive[:, None, None], q, linalg.identity_like(q)))
+    if evaluate is not None:
+        share = evaluate * inv_total
+        src = rc * share[:, None, :]
     dim = r.shape[0]  # below, elementwise sums beat batched products of tiny matrices
     grad = torch.empty_like(r)
     weight = share.clone()
@@ -213,13 +221,79 @@ def mls_linear_weights(d: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, 
     return weight, grad
 
 
+def nonnegative_mls(d: torch.Tensor, r: torch.Tensor, start: torch.Tensor, start_grad: torch.Tensor, *,
+                    max_iter: int | None = None, tol: float = 1e-13) -> tuple[torch.Tensor, torch.Tensor]:
+    """The closest non-negative kernel to MLS that still reproduces linear functions.
+
+    MLS weights (:func:`mls_linear_weights`) minimise sum w_i^2 / d_i subject to reproducing
+    linear functions, sum w_i p(x_i - x_p) = p(0). With w >= 0 added this is a strictly convex
+    QP; its solution is MLS on an active set A of nodes (w_i = d_i lambda^T p_i, M_A lambda =
+    p(0)) with every other node at exactly 0 and lambda^T p_j <= 0 there. Solved per row by the
+    primal active-set method, which keeps every iterate a non-negative, linearly exact kernel:
+    it starts from ``start`` (such a kernel, e.g. the barycentric coordinates of the containing
+    cell) with A = its support plus the nodes of positive MLS weight; a full step to MLS on A
+    is taken when it is non-negative, and then the node whose fit is most positive enters A;
+    otherwise the step stops where the first weight reaches 0, and that node leaves A.
+
+    - where MLS is non-negative it is the solution (callers pass only rows that need this);
+    - partition of unity, linear reproduction and sum grad w (x) x_i = I hold exactly, the
+      gradient being the MLS fitted gradient on A;
+    - the weights are continuous in the particle position: a node leaves A when its weight
+      reaches 0, and (Sherman-Morrison) removing a zero-weight node changes no other weight.
+      The fitted gradients of such a node jump by d_i/S Q^-1 (r_i - m), small for far nodes.
+
+    d: (R, K) sample weights (0 in empty slots); r: (dim, R, K) offsets x_i - x_p;
+    start: (R, K) / start_grad: (dim, R, K) a non-negative kernel with exact identities. Nodes
+    enter A when their fit exceeds ``tol`` (so round-off cannot cycle). Rows that do not finish
+    in ``max_iter`` iterations (default 4K; not seen in practice) keep ``start``.
+    """
+    candidate = d > 0
+    free = candidate & ((start > 0) | (mls_linear_weights(d, r)[0] > 0))
+    weight, grad = start.clone(), start_grad.clone()
+    done = torch.zeros(d.shape[0], dtype=torch.bool, device=d.device)
+    for _ in range(4 * d.shape[1] if max_iter is None else max_iter):
+        fit, fit_grad = mls_linear_weights(d * free, r, evaluate=d)
+        target = torch.where(free, fit, 0.0)
+        blocked = free & (target < 0) & ~done[:, None]
+        partial = blocked.any(dim=1)
+        ratio = torch.where(blocked, weight / torch.where(blocked, weight - target, 1.0), torch.inf)
+        alpha = ratio.amin(dim=1, keepdim=True).clamp(max=1.0)
+        stepped = ((1 - alpha) * weight + alpha * target).clamp_(min=0.0)
+        stepped.masked_fill_(blocked & (ratio <= alpha), 0.0)
+        weight = torch.where(partial[:, None], stepped, weight)
+        free &= ~(blocked & (ratio <= alpha))
+        full = ~partial & ~done
+        weight = torch.where(full[:, None], target, weight)
+        grad = torch.where(full[None, :, None], fit_grad * free, grad)
+        enter = ~free & candidate & (fit > tol) & full[:, None]
+        entering = enter.any(dim=1)
+        best = torch.where(enter, fit, -torch.inf).argmax(dim=1)
+        free[entering.nonzero().squeeze(1), best[entering]] = True
+        done |= full & ~entering
+        if bool(done.all()):
+            break
+    weight = torch.where(done[:, None], weight, start)
+    grad = torch.where(done[None, :, None], grad, start_grad)
+    return weight, grad
+
+
+def _barycentric_in_ring(tables: MeshTables, index: torch.Tensor, cell: torch.Tensor,
+                         bary: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The linear hat of the containing cell written in the ring's slots: (R, K), (dim, R, K)."""
+    corners = _gather_rows(tables.cells, cell)  # (R, d+1)
+    match = (index[:, None, :] == corners[:, :, None]).to(bary.dtype)  # (R, d+1, K)
+    weight = torch.einsum("rn,rnk->rk", bary, match)
+    grad = torch.einsum("rna,rnk->ark", _gather_rows(tables.bary_grad, cell), match)
+    return weight, grad
+
+
 def _gather_rows(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """table[index] for an index tensor of any shape (index_select is faster than indexing)."""
     return table.index_select(0, index.reshape(-1)).reshape(index.shape + table.shape[1:])
 
 
 # ----------------------------------------------------------------------------- mesh kernels
-def umls_kernel(mesh, x, eta: bool = True, *, location: Location | None = None,
+def umls_kernel(mesh, x, eta: bool = True, *, nonnegative: bool = True, location: Location | None = None,
                 guess: torch.Tensor | None = None) -> KernelResult:
     """UMLS-MPM kernel (UMLS §2.3.4) of particles ``x: (P, d)``.
 
@@ -227,6 +301,11 @@ def umls_kernel(mesh, x, eta: bool = True, *, location: Location | None = None,
     d_i = N(|x_i - x_p| / h) * eta_i with N the quadratic B-spline, h the longest physical
     edge and eta_i = sum_{n in N^0} B_n A(i, n) (UMLS eq. 32, A with self-loops, B the
     barycentric coordinates, eq. 33). ``eta=False`` drops eta (the ablation of UMLS Fig. 7).
+
+    nonnegative: where MLS gives a particle negative weights (boundary cells without the extra
+    layer, UMLS Fig. 5; with it, a few particles near 3D creases), use the closest non-negative
+    kernel that still reproduces linear functions (:func:`nonnegative_mls`); other particles
+    are unaffected. ``False`` gives the plain MLS kernel of the paper.
 
     mesh: Mesh, ExtendedMesh or MeshTables. location: a precomputed :func:`locate` result
     for ``x``; guess: (P,) cells to try first when locating.
@@ -251,6 +330,12 @@ def umls_kernel(mesh, x, eta: bool = True, *, location: Location | None = None,
     else:
         d.masked_fill_(empty, 0.0)
     weight, grad = mls_linear_weights(d, r)
+    if nonnegative:
+        rows = (weight < 0).any(dim=1).nonzero().squeeze(1)
+        if rows.numel():
+            rows_r = r.index_select(1, rows)
+            start = _barycentric_in_ring(tables, index[rows], cell[rows], location.bary[rows])
+            weight[rows], grad[:, rows] = nonnegative_mls(d[rows], rows_r, *start)
     return KernelResult(index=index, weight=weight, grad_axes=grad, offset_axes=r.masked_fill_(empty, 0.0),
                         status=location.status, cell=location.cell)
 
