@@ -51,7 +51,7 @@ import numpy as np
 import torch
 
 from . import linalg
-from .boundary import apply_conditions
+from .boundary import apply_conditions, apply_mirrors, fold_mirrors
 from .kernels import Grid, KernelResult, MeshTables, bspline_kernel, linear_kernel, umls_kernel
 from .locate import LocateStatus
 from .materials import Material
@@ -416,6 +416,12 @@ class Nodal:
     v_new: torch.Tensor
 
 
+def _by_index(model: Model, state: State) -> tuple:
+    """The conditions applied by node index: all of them in eulerian mode (or without wall
+    planes), else the pinned ones (the walls act on moved node positions there)."""
+    return model.conditions if state.reference is None or model.wall_planes is None else model.pinned
+
+
 def constrain(model: Model, state: State, v: torch.Tensor) -> torch.Tensor:
     """Boundary conditions on nodal velocities v (d, N), in place: by node index in eulerian
     mode; on the moved node positions (wall planes) plus the pinned nodes otherwise."""
@@ -445,13 +451,26 @@ def _wall_members(model: Model, ref: Reference) -> tuple[torch.Tensor, torch.Ten
     return nodes, inside
 
 
+def _parity(d: int) -> list[float]:
+    """Parity about a mirroring wall of the rows [m, p, f] of the P2G sums: mass even, the rest odd."""
+    return [1.0] + [-1.0] * (2 * d)
+
+
 def grid_update(model: Model, state: State, nodal: torch.Tensor, dt: float) -> Nodal:
-    """Nodal velocities before and after the update, constrained (UMLS eq. 13, Alg. 1 l. 6)."""
+    """Nodal velocities before and after the update, constrained (UMLS eq. 13, Alg. 1 l. 6).
+
+    nodal: (1+2d, N) [m, p, f_int], modified in place: the sums of mirror ghosts are first folded
+    onto the nodes they mirror (:func:`~datagen.mpm.boundary.fold_mirrors`), and the ghosts'
+    velocity before the update is mirrored as well as after it, so that FLIP's increment
+    v_new - v is the odd extension of the physical nodes' increment.
+    """
     d = model.dim
+    by_index = _by_index(model, state)
+    nodal = fold_mirrors(nodal, by_index, _parity(d))
     mass, momentum, force = nodal[0], nodal[1:1 + d], nodal[1 + d:]
     active = mass > _MASS_FLOOR * state.mass.mean()
     safe = torch.where(active, mass, torch.ones_like(mass))
-    v = torch.where(active, momentum / safe, 0.0)
+    v = apply_mirrors(torch.where(active, momentum / safe, 0.0), by_index)
     accel = force / safe + model.gravity[:, None]  # gravity: f_ext = m_i g (UMLS eq. 11)
     v_new = torch.where(active, v + dt * accel, 0.0)
     if model.damping:
@@ -511,6 +530,7 @@ def g2p_musl(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float
     new = g2p_flip(model, state, k, grid, dt)
     wm = k.weight * state.mass[:, None]
     momentum = _scatter(k, torch.stack([wm * new.v[:, a, None] for a in range(model.dim)]), model.n_nodes)
+    momentum = fold_mirrors(momentum, _by_index(model, state), [-1.0] * model.dim)  # as grid.mass was
     active = grid.mass > 0
     v_map = torch.where(active, momentum / torch.where(active, grid.mass, 1.0), 0.0)
     v_map = constrain(model, state, v_map)
