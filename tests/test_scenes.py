@@ -116,18 +116,23 @@ def test_sticky_wall_mirrors_the_extra_layer(dim):
     assert not any(isinstance(c, Mirror) for c in mesh_conditions(scene.domain, extended, plain, []))
 
 
-@pytest.mark.parametrize("dim", [1, 2])
+@pytest.mark.parametrize("dim", [1, 2, 3])
 def test_folded_mirror_is_the_transpose_of_the_ghost_velocities(dim):
     """fold_mirrors moves the ghosts' odd node sums (momentum, force) onto their sources so that the
     power sum_i f_i v_i of a constrained velocity field is the same before and after the fold."""
     import torch
 
+    from datagen import shapes
     from datagen.mesh import with_extra_layer
-    from datagen.mpm.boundary import Mirror, apply_conditions, fold_mirrors, mesh_conditions
+    from datagen.mpm.boundary import Mirror, Wall, apply_conditions, fold_mirrors, mesh_conditions
 
-    scene = vibrating_bar.build(vibrating_bar.params({"dim": dim, "n_cells": 20}))
-    extended = with_extra_layer(scene.domain)
-    conditions = mesh_conditions(scene.domain, extended, [w for w in scene.walls if w.kind == "sticky"], [])
+    if dim < 3:
+        scene = vibrating_bar.build(vibrating_bar.params({"dim": dim, "n_cells": 20}))
+        domain, walls = scene.domain, [w for w in scene.walls if w.kind == "sticky"]
+    else:  # a tetrahedral box clamped at x = 0
+        domain, walls = shapes.box((1.0, 0.5, 0.5), 0.2), [Wall("sticky", lambda c, n: n[:, 0] < -0.5)]
+    extended = with_extra_layer(domain)
+    conditions = mesh_conditions(domain, extended, walls, [])
     mirror = conditions[-1]
     assert isinstance(mirror, Mirror) and mirror.wall is not None and mirror.wall.numel() > 0
     rng = np.random.default_rng(0)
