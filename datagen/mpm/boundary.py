@@ -13,8 +13,10 @@ on the nodes at or beyond the faces of the grid's box. Kinds:
   its odd mirror image beyond the wall and the clamp sits on the wall to second order in h.
   With ``Wall(..., fold=False)`` the ghosts' velocities are only overwritten after the
   update: the fixed end of the vibrating bar then sits about 0.07 h beyond the wall, a
-  frequency error linear in h. Holding the layer nodes at rest instead
-  (``Wall(..., mirror=False)``, and always on a grid) puts the effective clamp about 0.14 h
+  frequency error linear in h. On a grid the nodes beyond a sticky box face are mirror
+  ghosts the same way (reflected across the face's plane, multilinear interpolation there;
+  those whose stencil leaves the box stay at rest). Holding the layer nodes at rest instead
+  (``Wall(..., mirror=False)``) puts the effective clamp about 0.14 h
   outside the wall, where the odd extension of the motion would be negative: a softer clamp
   (a 2D bar clamped about 0.1 m too far out at 80 cells, a cantilever deflecting ~5% more at
   the 0.5 m mesh).
@@ -140,8 +142,8 @@ class Wall:
 
     where(points (n, d), normals (n, d)) -> (n,) bool, given boundary facet centroids and
     outward normals (mesh) or points on the box faces and their normals (grid).
-    mirror: for ``sticky`` walls on a mesh with an extra layer, make the layer nodes beyond
-    the wall mirror ghosts (:class:`Mirror`) rather than holding them at rest.
+    mirror: for ``sticky`` walls on a mesh with an extra layer (or on a grid), make the nodes
+    beyond the wall mirror ghosts (:class:`Mirror`) rather than holding them at rest.
     fold: with ``mirror``, fold the ghosts' P2G sums onto the nodes they mirror
     (:func:`fold_mirrors`: the body sees its odd mirror image, the clamp sits on the wall to
     second order; the default); False only overwrites the ghosts' velocities after the update
@@ -284,7 +286,7 @@ def grid_conditions(grid: Grid, lower, upper, walls, clamps, *, device="cpu", dt
             normal = np.zeros(grid.dim)
             normal[axis] = sign
             faces.append((np.flatnonzero(beyond), normal))
-    out = []
+    out, mirrors = [], []
     for wall in walls:
         for ids, normal in faces:
             on_face = np.clip(nodes[ids], lower, upper)
@@ -293,10 +295,48 @@ def grid_conditions(grid: Grid, lower, upper, walls, clamps, *, device="cpu", dt
             if chosen.size:
                 chosen_normals = normals[: chosen.size]
                 out.append(_condition(wall.kind, chosen, chosen_normals, wall.friction, device, dtype))
+                if wall.kind == "sticky" and wall.mirror:
+                    mirror = _grid_mirror(grid, nodes, chosen, normal, lower, upper, tol, wall.fold, device, dtype)
+                    if mirror is not None:
+                        mirrors.append(mirror)
     for clamp in clamps:
         ids = np.flatnonzero(np.asarray(clamp.where(nodes), dtype=bool))
         out.append(Sticky(torch.as_tensor(ids, dtype=torch.int64, device=device)))
-    return out
+    return out + mirrors
+
+
+def _grid_mirror(grid: Grid, nodes: np.ndarray, chosen: np.ndarray, normal: np.ndarray, lower, upper, tol: float,
+                 fold: bool, device, dtype) -> Mirror | None:
+    """Mirror ghosts for the grid nodes of a sticky box face beyond it: each reflects across the
+    face's plane and takes minus the multilinear interpolation of the velocity there (the nodes
+    on the plane are the wall). Ghosts whose stencil is not all inside the box stay at rest."""
+    axis = int(np.flatnonzero(normal)[0])
+    plane = upper[axis] if normal[axis] > 0 else lower[axis]
+    beyond = chosen[np.abs(nodes[chosen, axis] - plane) > tol]
+    wall = chosen[np.abs(nodes[chosen, axis] - plane) <= tol]
+    if beyond.size == 0:
+        return None
+    reflected = nodes[beyond].copy()
+    reflected[:, axis] = 2.0 * plane - reflected[:, axis]
+    scaled = (reflected - np.asarray(grid.origin)) / grid.spacing
+    base = np.floor(scaled + 1e-9).astype(np.int64)
+    frac = np.clip(scaled - base, 0.0, 1.0)
+    frac[frac < 1e-9] = 0.0
+    corners = np.array(np.meshgrid(*[[0, 1]] * grid.dim, indexing="ij")).reshape(grid.dim, -1).T  # (2^d, d)
+    index = base[:, None, :] + corners[None]  # (m, 2^d, d)
+    weights = np.prod(np.where(corners[None] == 1, frac[:, None, :], 1.0 - frac[:, None, :]), axis=-1)
+    shape = np.asarray(grid.shape)
+    index = np.clip(index, 0, shape - 1)
+    position = np.asarray(grid.origin) + grid.spacing * index
+    inside = ((position >= lower - tol) & (position <= upper + tol)).all(-1) | (weights == 0)
+    keep = inside.all(axis=1)
+    strides = np.array([int(np.prod(shape[k + 1:])) for k in range(grid.dim)])
+    as_t = lambda a, dt: torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
+    return Mirror(
+        ghosts=as_t(beyond[keep], torch.int64), sources=as_t((index[keep] * strides).sum(-1), torch.int64),
+        weights=as_t(weights[keep], dtype), n_outside=int((~keep).sum()),
+        wall=as_t(wall, torch.int64) if fold else None,
+    )
 
 
 def apply_conditions(v: torch.Tensor, conditions) -> torch.Tensor:
