@@ -99,9 +99,10 @@ class Mirror:
     the ghost's reflection across the wall, negated (the odd extension of a field that
     vanishes on the wall).
 
-    ghosts: (m,) int64; sources: (m, d+1) nodes of the physical cell holding each reflection;
-    weights: (m, d+1) its barycentric coordinates there. n_outside: ghosts of the wall whose
-    reflection fell outside the physical mesh (held at rest instead; not listed here).
+    ghosts: (m,) int64; sources: (m, s) the nodes interpolating the velocity at each reflection
+    (a mesh: the d+1 nodes of the physical cell holding it; a grid: the 2^d nodes around it);
+    weights: (m, s) their interpolation weights there (barycentric / multilinear). n_outside:
+    ghosts whose reflection fell outside the physical domain (held at rest; not listed here).
     wall: (w,) int64 the physical nodes on the wall, their own mirror images, for a folded
     mirror; None: the ghosts' velocities are only overwritten after the update (no fold).
 
@@ -127,7 +128,7 @@ class Mirror:
         wall (mass), -1 for odd ones (momentum, force), as ``apply`` extends the velocity.
         """
         ghost = values[:, self.ghosts] * parity[:, None]  # (c, m)
-        share = ghost[:, :, None] * self.weights[None]  # (c, m, d+1)
+        share = ghost[:, :, None] * self.weights[None]  # (c, m, s)
         values.index_add_(1, self.sources.reshape(-1), share.reshape(values.shape[0], -1))
         values[:, self.ghosts] = 0.0
         return values

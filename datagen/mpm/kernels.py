@@ -222,7 +222,8 @@ def mls_linear_weights(d: torch.Tensor, r: torch.Tensor, *,
 
 
 def nonnegative_mls(d: torch.Tensor, r: torch.Tensor, start: torch.Tensor, start_grad: torch.Tensor, *,
-                    max_iter: int | None = None, tol: float = 1e-13) -> tuple[torch.Tensor, torch.Tensor]:
+                    mls_weight: torch.Tensor | None = None, max_iter: int | None = None,
+                    tol: float = 1e-13) -> tuple[torch.Tensor, torch.Tensor]:
     """The closest non-negative kernel to MLS that still reproduces linear functions.
 
     MLS weights (:func:`mls_linear_weights`) minimise sum w_i^2 / d_i subject to reproducing
@@ -243,12 +244,15 @@ def nonnegative_mls(d: torch.Tensor, r: torch.Tensor, start: torch.Tensor, start
       The fitted gradients of such a node jump by d_i/S Q^-1 (r_i - m), small for far nodes.
 
     d: (R, K) sample weights (0 in empty slots); r: (dim, R, K) offsets x_i - x_p;
-    start: (R, K) / start_grad: (dim, R, K) a non-negative kernel with exact identities. Nodes
+    start: (R, K) / start_grad: (dim, R, K) a non-negative kernel with exact identities;
+    mls_weight: (R, K) the plain MLS weights of these rows if already computed. Nodes
     enter A when their fit exceeds ``tol`` (so round-off cannot cycle). Rows that do not finish
     in ``max_iter`` iterations (default 4K; not seen in practice) keep ``start``.
     """
     candidate = d > 0
-    free = candidate & ((start > 0) | (mls_linear_weights(d, r)[0] > 0))
+    if mls_weight is None:
+        mls_weight, _ = mls_linear_weights(d, r)
+    free = candidate & ((start > 0) | (mls_weight > 0))
     weight, grad = start.clone(), start_grad.clone()
     done = torch.zeros(d.shape[0], dtype=torch.bool, device=d.device)
     for _ in range(4 * d.shape[1] if max_iter is None else max_iter):
@@ -335,7 +339,7 @@ def umls_kernel(mesh, x, eta: bool = True, *, nonnegative: bool = True, location
         if rows.numel():
             rows_r = r.index_select(1, rows)
             start = _barycentric_in_ring(tables, index[rows], cell[rows], location.bary[rows])
-            weight[rows], grad[:, rows] = nonnegative_mls(d[rows], rows_r, *start)
+            weight[rows], grad[:, rows] = nonnegative_mls(d[rows], rows_r, *start, mls_weight=weight[rows])
     return KernelResult(index=index, weight=weight, grad_axes=grad, offset_axes=r.masked_fill_(empty, 0.0),
                         status=location.status, cell=location.cell)
 

@@ -426,14 +426,13 @@ def constrain(model: Model, state: State, v: torch.Tensor) -> torch.Tensor:
     """Boundary conditions on nodal velocities v (d, N), in place: by node index in eulerian
     mode; on the moved node positions (wall planes) plus the pinned nodes otherwise."""
     ref = state.reference
-    if ref is None or model.wall_planes is None:
-        return apply_conditions(v, model.conditions)
-    if model.wall_planes and ref.drift >= ref.wall_gap:  # only nodes in the kernel's support carry velocity
+    by_plane = ref is not None and bool(model.wall_planes)
+    if by_plane and ref.drift >= ref.wall_gap:  # only nodes in the kernel's support carry velocity
         nodes, members = _wall_members(model, ref)
         for j, hit in enumerate(members.any(1).tolist()):
             if hit:
                 model.wall_planes[j].apply_to(v, nodes[members[j]])
-    return apply_conditions(v, model.pinned)
+    return apply_conditions(v, _by_index(model, state))
 
 
 def _wall_members(model: Model, ref: Reference) -> tuple[torch.Tensor, torch.Tensor]:
