@@ -6,7 +6,8 @@ times ``bistride_levels(mesh, levels=7, seeding=...)`` -- the mesh and 6 coarse 
 transitions -- as the best of ``--repeats`` runs, each on a fresh Mesh object. In the same
 process it runs the reference below (once) where it can: plain Python BFS with a list as
 queue, two-hop sets for coarse edges, loops for the transition weights, and for MinAve a
-dense all-pairs BFS table. Both must give the same levels (kept nodes and edges).
+dense all-pairs BFS table. Both must give the same levels (kept nodes and edges) and the same
+down and up transition weights (to 1e-12).
 
 Run: python benchmarks/bistride_preprocess.py [--sizes 1k 10k 50k 200k] [--dims 2 3]
 The table is printed and written to ``runs/benchmarks/bistride_preprocess.md``.
@@ -21,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 
 from bsms.graph import SEEDINGS, bistride_levels
 from datagen import shapes
@@ -29,8 +31,7 @@ from datagen.mesh import Mesh
 LEVELS = 7  # the mesh and 6 coarse levels
 SIZES = {"1k": 1_000, "10k": 10_000, "50k": 50_000, "200k": 200_000}
 TARGETS = {(2, "50k", "close_center"): 0.2, (2, "50k", "min_ave"): 2.0, (2, "200k", "close_center"): 1.0}
-ORIGINAL = ("for scale, the original authors' implementation on this machine: 0.78 s for a 47k-node and "
-            "5.3 s for a 186k-node triangle mesh (6 levels, centre seeding)")
+WEIGHT_TOLERANCE = 1e-12
 REFERENCE_MIN_AVE_NODES = 2_000  # its dense all-pairs table is O(N^2) in time and memory
 REFERENCE_3D_NODES = 12_000  # 3D coarse levels get dense (mean degree ~1000): two-hop sets explode
 CACHE = Path(".cache/benchmarks")
@@ -116,8 +117,17 @@ def reference_level(neighbours, positions, weights, seeding, keys, distances):
     return kept, coarse, down, coarse_weights
 
 
-def reference_levels(mesh: Mesh, seeding: str, seed: int = 0) -> list[tuple[list[int], list[list[int]]]]:
-    """All levels by the reference: (kept, coarse neighbour lists) per coarse level."""
+def reference_up(down: list[dict[int, float]], n_fine: int) -> list[dict[int, float]]:
+    """Up weights: the down table transposed, renormalised per fine node."""
+    up = [{} for _ in range(n_fine)]
+    for coarse, row in enumerate(down):
+        for fine, weight in row.items():
+            up[fine][coarse] = weight
+    return [{coarse: w / sum(row.values()) for coarse, w in row.items()} for row in up]
+
+
+def reference_levels(mesh: Mesh, seeding: str, seed: int = 0) -> list[tuple]:
+    """All levels by the reference: (kept, coarse neighbour lists, down rows, up rows) per coarse level."""
     neighbours = [[] for _ in range(mesh.n_nodes)]
     for i, j in mesh.edges.tolist():
         neighbours[i].append(j)
@@ -132,20 +142,35 @@ def reference_levels(mesh: Mesh, seeding: str, seed: int = 0) -> list[tuple[list
             for source in range(n):
                 for node, hops in python_bfs(neighbours, source).items():
                     distances[source, node] = hops
-        level = reference_level(neighbours, positions, weights, seeding, keys, distances)
-        kept, neighbours, _, weights = level
-        positions = positions[kept]
-        out.append((kept, neighbours))
+        kept, coarse, down, weights = reference_level(neighbours, positions, weights, seeding, keys, distances)
+        out.append((kept, coarse, down, reference_up(down, n)))
+        positions, neighbours = positions[kept], coarse
     return out
 
 
 def same_levels(hierarchy, reference) -> bool:
-    for level, (kept, neighbours) in zip(hierarchy.levels[1:], reference, strict=True):
+    for level, (kept, neighbours, _, _) in zip(hierarchy.levels[1:], reference, strict=True):
         rows = np.repeat(np.arange(len(neighbours)), [len(n) for n in neighbours])
         edges = np.stack([rows, np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours])])
         if level.kept.tolist() != kept or not np.array_equal(level.edge_index, edges):
             return False
     return True
+
+
+def as_matrix(rows: list[dict[int, float]], n_cols: int) -> sp.csr_matrix:
+    indices = [(r, c, w) for r, row in enumerate(rows) for c, w in row.items()]
+    r, c, w = (np.array(v) for v in zip(*indices, strict=True))
+    return sp.csr_matrix((w, (r, c)), shape=(len(rows), n_cols))
+
+
+def weight_difference(hierarchy, reference) -> float:
+    """Largest difference between bsms' down/up weights and the reference's, over all levels."""
+    worst = 0.0
+    for level, (_, _, down, up) in zip(hierarchy.levels[1:], reference, strict=True):
+        for transition, rows in ((level.down, down), (level.up, up)):
+            difference = transition.matrix() - as_matrix(rows, transition.shape[1])
+            worst = max(worst, float(abs(difference).max()) if difference.nnz else 0.0)
+    return worst
 
 
 # --------------------------------------------------------------------------- timing
@@ -171,16 +196,19 @@ def run_case(dim, name, mesh, seeding, args) -> str:
     fast, hierarchy = best_time(mesh, seeding, args.repeats)
     target = TARGETS.get((dim, name, seeding))
     verdict = "" if target is None else f"{'met' if fast < target else 'MISSED'} (< {target:g} s)"
-    reference = speedup = match = "-"
+    reference = speedup = match = weights = "-"
     if reference_fits(dim, mesh.n_nodes, seeding, args.reference_max_nodes):
         start = time.perf_counter()
         levels = reference_levels(mesh, seeding)
         elapsed = time.perf_counter() - start
         reference, speedup = f"{elapsed:.3f}", f"{elapsed / fast:.0f}x"
         match = "yes" if same_levels(hierarchy, levels) else "NO"
+        if match == "yes":
+            difference = weight_difference(hierarchy, levels)
+            weights = f"{'yes' if difference <= WEIGHT_TOLERANCE else 'NO'} ({difference:.1e})"
     counts = "/".join(str(c) for c in hierarchy.node_counts)
     return (f"| {dim}D | {name} | {mesh.n_nodes} | {seeding} | {fast:.3f} | {reference} | {speedup} | "
-            f"{match} | {verdict} | {counts} |")
+            f"{match} | {weights} | {verdict} | {counts} |")
 
 
 def main() -> None:
@@ -193,10 +221,9 @@ def main() -> None:
                         help="largest mesh the reference runs on (also at most 2k for MinAve, 12k in 3D)")
     args = parser.parse_args()
     machine = platform.processor() or platform.machine()
-    lines = [f"bistride_levels, levels={LEVELS}, best of {args.repeats}; {machine}",
-             ORIGINAL, "",
-             "| dim | size | nodes | seeding | bsms [s] | reference [s] | speed-up | same levels | target "
-             "| nodes per level |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [f"bistride_levels, levels={LEVELS}, best of {args.repeats}; {machine}", "",
+             "| dim | size | nodes | seeding | bsms [s] | reference [s] | speed-up | same levels | same weights "
+             "(max difference) | target | nodes per level |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
     for dim in args.dims:
         for name in args.sizes:

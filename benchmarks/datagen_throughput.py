@@ -16,8 +16,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from datagen.dataset_config import load_dataset_config
 from datagen.families import FAMILIES
-from datagen.generate import generate, load_dataset_config
+from datagen.generate import generate
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "datasets"
 

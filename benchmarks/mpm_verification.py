@@ -1,9 +1,17 @@
-"""Verification of the MPM solver against closed forms and the structured B-spline reference.
+"""Verification of the MPM solver against closed forms and the structured B-spline solver.
 
-Reproduces, at larger sizes than the tests, UMLS §3.1 (vibrating bar: eq. 34, convergence,
+Reproduces, at larger sizes than the tests, UMLS §3.1 (vibrating bar: UMLS eq. 34, convergence,
 cell-crossing stress noise of the linear hat), App. D.1 (APIC rotating square: momenta),
 §3.2 (colliding disks) and §3.3 (cantilever on rotated meshes). Writes ``results.json`` and
 the plots (``bar_convergence.png``, ``bar_stress.png``, ``cantilever_tip.png``) to --out.
+Everything stored or printed is measured by this run.
+
+Reading the convergence series: ``convergence`` is the default bar (the mirror ghosts beyond the
+fixed end folded onto the nodes they mirror); ``convergence_overwrite`` only overwrites the
+ghosts' velocities after the update, which leaves the clamp a fraction of a cell beyond x = 0
+and the error first order in dx; ``convergence_small_amplitude`` (v0 = 0.1) has no cell
+crossings on the coarse meshes; ``convergence_bspline`` is the structured B-spline solver, whose
+grid nodes beyond the clamp are folded mirror ghosts too.
 
     python benchmarks/mpm_verification.py [--out runs/mpm_verification] [--quick] [--threads 2]
 """
@@ -24,31 +32,10 @@ import torch  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 import datagen  # noqa: E402
-from datagen.mpm.solver import SimulationError  # noqa: E402
+from datagen.mpm import SimulationError  # noqa: E402
 from datagen.scenes import vibrating_bar  # noqa: E402
 
 CONVERGENCE_DT = 1e-3  # below the CFL step of every size (400 cells: 1.9e-3); the CFL step gives the same errors
-CONVERGENCE_NOTE = (
-    "Second order on the coarse meshes once the mirror ghosts beyond the fixed end are folded (fixed_end 'fold', "
-    "the default): displacement RMSE 0.70/0.17/0.049/0.026% of the amplitude at 12/25/50/100 cells, slope 1.87 at "
-    "12-50 cells (dx 2 to 0.5 m); first-mode frequency error -0.39/-0.090/-0.024/-0.007%. The first order measured "
-    "before (1.66/0.66/0.30/0.145%, slope 1.15 at 12-100 cells, 'convergence_overwrite') was the fixed end: the "
-    "ghosts' velocities were overwritten after the update and the mass, momentum and force the particles scatter "
-    "to them dropped, so the nodes next to the wall missed the mirror image's share of the force while the "
-    "particles' strain still saw the ghosts' velocities: a frequency error of about -0.07 dx/L (the clamp about "
-    "0.07 dx beyond x = 0) and a slow FLIP energy gain. A linearised (fixed-kernel) eigen-analysis of one solver "
-    "step locates it: a free-free bar of length 2L (no wall) and the folded bar have the same frequency errors, "
-    "-0.37/-0.085/-0.021% at 12/25/50 cells, while a fixed-fixed bar has the first-order errors of the unfolded bar; "
-    "4 or 8 particles per cell do not remove it (frequency error -1.1/-0.44/-0.20% with 4), nor does APIC "
-    "(1.22/0.57/0.28/0.14% unfolded, 0.87/0.096/0.025/0.014% folded), nor a small amplitude (v0 = 0.1: "
-    "1.64/0.68/0.31/0.146% unfolded). The structured B-spline reference mirrors and folds its grid nodes beyond "
-    "the clamp the same way ('convergence_bspline', full run; 0.73/0.19/0.061% at 12/25/50 cells, slope 1.75); "
-    "holding them at rest, as before, was first order (3.8/1.6/0.75/0.37% at 12-100 cells, slope 1.14). "
-    "On finer meshes the paper's amplitude levels off near 0.02% (0.026/0.016/0.021% at 100/200/400 cells); this is "
-    "not temporal (halving dt changes 100 and 400 cells by under 1%) but comes with the cell crossings: at v0 = 0.1 "
-    "the error keeps falling, 0.013/0.0048/0.0028%. The 2D strip at 80 cells: 0.57% (centre of mass; 0.98% "
-    "unfolded)."
-)
 
 
 def stress_noise(t: np.ndarray, stress: np.ndarray, omega: float) -> float:
@@ -105,12 +92,12 @@ def _slope(series: list[dict], cells: tuple[int, int] = COARSE) -> float | None:
 
 
 def vibrating_bar_study(out: Path, quick: bool) -> dict:
-    """Eq. 34 at 80 cells (1D and 2D strip), convergence in dx, stress noise linear vs UMLS.
+    """UMLS eq. 34 at 80 cells (1D and 2D strip), convergence in dx, stress noise linear vs UMLS.
 
     Convergence (1D, one period, dt = CONVERGENCE_DT): the default bar (fixed end: folded
     mirror ghosts, v0 = 0.75 as in the paper), the small amplitude v0 = 0.1 (no cell crossing
     on coarse meshes), and the fixed end without the fold (``overwrite``, the treatment before);
-    the full run adds 200 and 400 cells and the structured B-spline reference (its grid nodes
+    the full run adds 200 and 400 cells and the structured B-spline solver (its grid nodes
     beyond the clamp are folded mirror ghosts too). Slopes of log(displacement RMSE) against
     log(dx): ``convergence_slope_coarse*`` at 12-50 cells (the paper's coarse range, dx 2 m to
     0.5 m), ``convergence_slope_12_100*``, and in the full run ``convergence_slope_fine*`` at 100-400 cells.
@@ -134,7 +121,6 @@ def vibrating_bar_study(out: Path, quick: bool) -> dict:
         res[name.replace("convergence", "convergence_slope_12_100")] = _slope(rows, (12, 100))
         if not quick and name in ("convergence", "convergence_small_amplitude"):
             res[name.replace("convergence", "convergence_slope_fine")] = _slope(rows, FINE)  # 100-400 cells
-    res["convergence_note"] = CONVERGENCE_NOTE
     _plot_convergence(out / "bar_convergence.png", series)
     res["stress_noise"] = _bar_noise(out)
     return res
@@ -230,8 +216,8 @@ def colliding_disks_study(quick: bool) -> dict:
                      "momentum_max_rel": float(np.abs(traj.diagnostics["momentum"]).max() / scale),
                      "particles": traj.n_particles, "wall_time_s": traj.wall_time}
     if "ke_recovered" in res["umls"] and "ke_recovered" in res["bspline_fine"]:
-        ref = res["bspline_fine"]["ke_recovered"]
-        res["umls_ke_recovery_rel_error"] = abs(res["umls"]["ke_recovered"] - ref) / ref
+        fine = res["bspline_fine"]["ke_recovered"]
+        res["umls_ke_recovery_rel_error"] = abs(res["umls"]["ke_recovered"] - fine) / fine
     return res
 
 
@@ -244,20 +230,20 @@ def _tip_series(kernel: str, params: dict, solver: dict | None = None, seconds: 
 
 
 def cantilever_study(out: Path, quick: bool) -> dict:
-    """Tip deflection on rotated meshes (UMLS §3.3) vs a fine B-spline reference."""
+    """Tip deflection on rotated meshes (UMLS §3.3) vs the fine structured B-spline solver."""
     seconds = 0.8 if quick else 1.5
-    t, ref = _tip_series("bspline", {"particle_spacing": 0.0625}, {"grid_spacing": 0.125}, seconds)
-    res = {"reference_max_deflection": float(-ref.min()), "meshes": {}}
+    t, fine = _tip_series("bspline", {"particle_spacing": 0.0625}, {"grid_spacing": 0.125}, seconds)
+    res = {"bspline_max_deflection": float(-fine.min()), "meshes": {}}
     fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(t, ref, "k", lw=2, label="B-spline reference (h = 0.125 m)")
+    ax.plot(t, fine, "k", lw=2, label="structured B-spline solver (h = 0.125 m)")
     for size in (0.5, 0.4):
         per = {}
         for angle in (0.0, 15.0, 30.0, 45.0):
             _, dy = _tip_series("umls", {"mesh_size": size, "rotation": angle}, None, seconds)
-            rmse = float(np.sqrt(np.mean((dy - ref) ** 2)))
+            rmse = float(np.sqrt(np.mean((dy - fine) ** 2)))
             per[f"{angle:g}"] = {"max_deflection": float(-dy.min()),
-                                 "rel_error_vs_reference": float(abs(dy.min() - ref.min()) / -ref.min()),
-                                 "rmse_vs_reference_rel": rmse / float(-ref.min())}
+                                 "rel_error_vs_bspline": float(abs(dy.min() - fine.min()) / -fine.min()),
+                                 "rmse_vs_bspline_rel": rmse / float(-fine.min())}
             ax.plot(t, dy, lw=0.8, label=f"UMLS mesh {size} m, {angle:g} deg")
         upright = per["0"]["max_deflection"]
         for record in per.values():

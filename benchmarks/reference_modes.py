@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 import datagen
-from datagen.mpm.solver import SimulationError, step
+from datagen.mpm import SimulationError, step
 from datagen.simulation import build_simulation
 
 SCENES = ("rotating_plate", "stretched_bar", "droplet")

@@ -8,7 +8,7 @@ overrides a scene parameter such as ``body_size`` and names its own folder). Sam
 drawn once with ``--seed`` and handed to both workers, so both see identical graphs (the same
 ``graph`` options, contact edges included; MeshGraphNets reads level 0 only).
 
-Models: the standard ones of ``bsms.trainer.build_model`` -- MLPs of 2 hidden layers x
+Models: the standard ones of ``bsms.run.build_model`` -- MLPs of 2 hidden layers x
 ``--latent`` (128), MeshGraphNets with 15 passes, BSMS-GNN with one block per level down and up
 plus the bottom block. ``--levels auto`` picks the depth from the meshes: the bi-stride
 hierarchy is pooled until a level has fewer than 32 nodes (``bistride_levels(levels="auto")``),
@@ -77,7 +77,8 @@ def _parse_param(text: str) -> tuple[str, object]:
 
 def prepare_data(args) -> Path:
     """The benchmark's dataset folder, generated where trajectories are missing."""
-    from datagen.generate import generate, load_dataset_config
+    from datagen.dataset_config import load_dataset_config
+    from datagen.generate import generate
 
     dconfig = load_dataset_config(CONFIGS / f"{args.family}.yaml")
     suffix = "".join(f"_{k}{v}" for k, v in args.param)
@@ -194,7 +195,7 @@ def worker(spec: dict) -> dict:
     from torch_geometric.data import Batch
 
     from bsms.data import FrameDataset
-    from bsms.trainer import build_model, load_config
+    from bsms.run import build_model, load_config
 
     torch.set_num_threads(spec["threads"])
     device = torch.device(spec["device"])

@@ -1,8 +1,9 @@
-"""Checkpoints: written atomically, read with ``weights_only=True`` (a file cannot run code).
+"""Checkpoint files: written atomically, read with ``weights_only=True`` (a file cannot run code).
 
 A checkpoint is a dict of tensors and plain values: ``format``, ``config`` (the run's resolved
 config as a mapping), ``dim``, ``step``, ``best_valid``, ``seconds``, ``model`` (state dict,
-normalisers included), ``optimizer``, ``scheduler`` and ``rng``.
+normalisers included), ``optimizer``, ``scheduler`` and ``rng``. Where a run keeps its
+checkpoints, and how a model is rebuilt from one, is :mod:`bsms.run`'s business.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import torch
 
 from datagen.atomic import atomic_path
 
-__all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "load_model", "find_checkpoint"]
+__all__ = ["CheckpointError", "FORMAT", "save_checkpoint", "load_checkpoint"]
 
 FORMAT = 1
 _REQUIRED = ("format", "config", "dim", "step", "model")
@@ -48,38 +49,3 @@ def load_checkpoint(path) -> dict:
     if state["format"] != FORMAT:
         raise CheckpointError(f"checkpoint {path} has format {state['format']}; this bsms reads format {FORMAT}")
     return state
-
-
-def find_checkpoint(run_dir, which: str = "best") -> Path:
-    """``<run_dir>/checkpoints/<which>.pt``, falling back from best to latest."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise CheckpointError(f"run folder {run_dir} does not exist; train one with python train.py CONFIG")
-    folder = run_dir / "checkpoints"
-    order = [which] + (["latest"] if which == "best" else [])
-    for name in order:
-        if (folder / f"{name}.pt").is_file():
-            return folder / f"{name}.pt"
-    raise CheckpointError(f"run folder {run_dir} has no usable checkpoint (looked for "
-                          f"{', '.join(f'checkpoints/{n}.pt' for n in order)}); train it with python train.py CONFIG "
-                          "(or --resume an interrupted run)")
-
-
-def load_model(source, which: str = "best", device="cpu"):
-    """(model in eval mode, Config, checkpoint dict) from a run folder or a checkpoint file."""
-    from bsms.config import ConfigError, build
-    from bsms.trainer import Config, build_model
-
-    path = Path(source)
-    path = path if path.is_file() else find_checkpoint(path, which)
-    state = load_checkpoint(path)
-    try:
-        config = build(Config, state["config"])
-    except ConfigError as exc:
-        raise CheckpointError(f"checkpoint {path} holds a config this bsms cannot read ({exc})") from None
-    model = build_model(config, int(state["dim"]))
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as exc:
-        raise CheckpointError(f"checkpoint {path}: its weights do not fit its own config ({str(exc)[:200]})") from None
-    return model.to(device).eval(), config, state

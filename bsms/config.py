@@ -9,22 +9,19 @@ each value parsed as YAML (``optim.lr=3e-4``, ``train.steps=2000``, ``model.name
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import types
 import typing
-from pathlib import Path
 from typing import Any, Literal, Union, get_args, get_origin
 
 import yaml
 
-from datagen.scenes.base import ConfigError as _ConfigError
+from datagen.config import ConfigError, read_yaml, reject_unknown
 
+# ConfigError is the one error of every config in the project (datasets, scenes, training runs).
 __all__ = ["ConfigError", "build", "load", "apply_overrides", "to_dict"]
-
-
-# One error type for every config in the project (datasets, scenes, training runs).
-ConfigError = _ConfigError
 
 
 def _type_name(annotation) -> str:
@@ -99,10 +96,7 @@ def build(cls, data, prefix: str = ""):
         raise ConfigError(f"{where} must be a mapping of keys to values, got {data!r}")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        name = f"{prefix}.{unknown[0]}" if prefix else str(unknown[0])
-        raise ConfigError(f"unknown config key '{name}'; {where} accepts: {', '.join(sorted(fields))}")
+    reject_unknown(data, fields, prefix=prefix, where=where)
     values = {}
     for name, field in fields.items():
         key = f"{prefix}.{name}" if prefix else name
@@ -117,23 +111,13 @@ def build(cls, data, prefix: str = ""):
 
 
 def load(path) -> dict:
-    """Mapping from a YAML file, read with ``yaml.safe_load`` (no file can execute code)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file {path} does not exist")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"config file {path} must hold a mapping of keys to values")
-    return data
+    """Mapping from a YAML file, read with ``yaml.safe_load`` (no file can execute code); an
+    ``extends: PARENT`` key merges the file over PARENT (:func:`datagen.config.read_yaml`)."""
+    return read_yaml(path, what="config file")
 
 
 def apply_overrides(data: dict, overrides: list[str]) -> dict:
     """A copy of ``data`` with each ``dotted.key=value`` applied (value parsed as YAML)."""
-    import copy
-
     data = copy.deepcopy(data)
     for item in overrides:
         key, sep, text = item.partition("=")

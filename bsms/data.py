@@ -16,8 +16,12 @@ import numpy as np
 import torch
 from torch import Tensor
 from torch_geometric.data import Data
+from tqdm import tqdm
 
-from datagen.dataset import NodeType
+from bsms.config import ConfigError
+from bsms.graph import Transition, bistride_levels, coarsen_contacts, contact_edges
+from datagen.dataset import load
+from datagen.trajectory import NodeType
 
 __all__ = [
     "NodeType", "N_NODE_TYPES", "MeshLevels", "LevelGraph", "frame_graph", "GraphOptions", "NoiseOptions",
@@ -37,14 +41,14 @@ class MeshLevels:
     """The levels of one mesh in torch form, level 0 first (built once per mesh).
 
     nodes[l]: (n_l,) level-0 index of each level-l node. edge_index[l]: (2, E_l).
-    down[l]: (rows, cols, weights) of the map level l -> l+1 (rows index level l+1).
-    up[l]: (rows, cols, weights) of the map level l+1 -> l (rows index level l).
+    down[l]: the :class:`~bsms.graph.Transition` level l -> l+1 (rows index level l+1);
+    up[l]: the one level l+1 -> l; both with torch tensors (weights float32).
     """
 
     nodes: tuple[Tensor, ...]
     edge_index: tuple[Tensor, ...]
-    down: tuple[tuple[Tensor, Tensor, Tensor], ...]
-    up: tuple[tuple[Tensor, Tensor, Tensor], ...]
+    down: tuple[Transition, ...]
+    up: tuple[Transition, ...]
 
     @property
     def n_levels(self) -> int:
@@ -57,17 +61,18 @@ class MeshLevels:
         nodes = tuple(_tensor(hierarchy.finest_indices(l), torch.long) for l in range(len(levels)))
         edges = tuple(_tensor(level.edge_index, torch.long) for level in levels)
 
-        def triplets(transition):
-            return (_tensor(transition.rows, torch.long), _tensor(transition.cols, torch.long),
-                    _tensor(transition.weights, torch.float32))
+        def in_torch(transition: Transition) -> Transition:
+            return Transition(_tensor(transition.rows, torch.long), _tensor(transition.cols, torch.long),
+                              _tensor(transition.weights, torch.float32), transition.shape)
 
-        down = tuple(triplets(level.down) for level in levels[1:])
-        up = tuple(triplets(level.up) for level in levels[1:])
+        down = tuple(in_torch(level.down) for level in levels[1:])
+        up = tuple(in_torch(level.up) for level in levels[1:])
         return cls(nodes, edges, down, up)
 
 
-# Which node count each index field is offset by when graphs are batched:
-# (prefix, level offset of the counted level relative to the field's level).
+# How PyG's Batch offsets each index field of a LevelGraph: field prefix -> which level's node
+# count (relative to the field's own level l) the field's values index. The transitions are
+# stored as their triplets, ``{down,up}_{rows,cols,weights}_{l}`` (weights are never offset).
 _OFFSETS = {
     "edge_index": 0, "contact_index": 0, "down_rows": 1, "down_cols": 0, "up_rows": 0, "up_cols": 1,
 }
@@ -79,7 +84,8 @@ class LevelGraph(Data):
     x-like fields on level-0 nodes: ``pos``, ``rest_pos``, ``velocity`` (N, d),
     ``node_type`` (N,), optional ``constants`` (N, k), ``target`` (N, d), ``loss_mask`` (N,).
     Per level: ``nodes_{l}``, ``edge_index_{l}``, ``contact_index_{l}``, ``down_*_{l}`` and
-    ``up_*_{l}`` (rows, cols, weights) for the maps between l and l+1, ``n_nodes_{l}``.
+    ``up_*_{l}`` (rows, cols, weights) of the transitions between l and l+1 (:meth:`transition`),
+    ``n_nodes_{l}``.
     """
 
     def __inc__(self, key: str, value, *args, **kwargs):
@@ -100,6 +106,13 @@ class LevelGraph(Data):
     @property
     def n_levels(self) -> int:
         return sum(1 for key in self.keys() if key.startswith("nodes_"))
+
+    def transition(self, kind: str, level: int) -> Transition:
+        """The ``"down"`` (l -> l+1) or ``"up"`` (l+1 -> l) transition of ``level`` l, in torch
+        (of the whole batch for a batch)."""
+        shape = (self.level_size(level + 1), self.level_size(level))
+        return Transition(self[f"{kind}_rows_{level}"], self[f"{kind}_cols_{level}"], self[f"{kind}_weights_{level}"],
+                          shape if kind == "down" else shape[::-1])
 
     def level_size(self, level: int) -> int:
         """Total node count of ``level`` (summed over the graphs of a batch)."""
@@ -137,10 +150,9 @@ def frame_graph(levels: MeshLevels, *, rest_pos, pos, velocity, node_type, targe
         if contacts is not None:
             setattr(data, f"contact_index_{l}", _tensor(contacts[l], torch.long).reshape(2, -1))
         if l + 1 < levels.n_levels:
-            for kind, (rows, cols, weights) in (("down", levels.down[l]), ("up", levels.up[l])):
-                setattr(data, f"{kind}_rows_{l}", rows)
-                setattr(data, f"{kind}_cols_{l}", cols)
-                setattr(data, f"{kind}_weights_{l}", weights)
+            for kind, transition in (("down", levels.down[l]), ("up", levels.up[l])):
+                for part in ("rows", "cols", "weights"):
+                    setattr(data, f"{kind}_{part}_{l}", getattr(transition, part))
     return data
 
 
@@ -178,8 +190,6 @@ class GraphOptions:
     constants: list[str] = field(default_factory=list)
 
     def validate(self, prefix: str = "graph") -> None:
-        from bsms.config import ConfigError
-
         if not 1 <= self.levels <= 16:
             raise ConfigError(f"config key '{prefix}.levels' must be from 1 to 16 (the mesh included), "
                               f"got {self.levels}")
@@ -295,8 +305,6 @@ class Scenario:
               obstacle_nodes=None, obstacle_facets=None, params: dict | None = None, cache_dir=None,
               source: str = "the trajectory") -> Scenario:
         """The scenario of body ``mesh`` (a datagen Mesh) with optional obstacle geometry."""
-        from bsms.graph import bistride_levels
-
         n_body, dim = mesh.nodes.shape
         node_type = np.full(n_body, NodeType.FREE, np.int64) if node_type is None else np.asarray(node_type, np.int64)
         body_id = np.zeros(n_body, np.int64) if body_id is None else np.asarray(body_id, np.int64)
@@ -355,8 +363,6 @@ class Scenario:
 
     def contacts(self, pos: np.ndarray) -> tuple | None:
         """Contact edges of positions ``pos`` (N, d) on every level, or None without contact."""
-        from bsms.graph import coarsen_contacts, contact_edges
-
         if not self.options.contact:
             return None
         level0 = contact_edges(pos, self.body_id, self.contact_radius, exclude=self.edges,
@@ -389,8 +395,6 @@ class NoiseOptions:
     gamma: float = 0.1
 
     def validate(self, prefix: str = "noise") -> None:
-        from bsms.config import ConfigError
-
         for name in ("position", "velocity"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"config key '{prefix}.{name}' is a standard deviation and must be >= 0, "
@@ -410,10 +414,6 @@ class FrameDataset(torch.utils.data.Dataset):
 
     def __init__(self, files, options: GraphOptions, noise: NoiseOptions | None = None, cache_dir=None,
                  progress: bool = False):
-        from tqdm import tqdm
-
-        from datagen.dataset import load
-
         self.files = [str(f) for f in files]
         if not self.files:
             raise ValueError("FrameDataset needs at least one trajectory file")

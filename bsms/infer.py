@@ -12,19 +12,28 @@ runs the same setup, and the error and speed-up are reported (and drawn in the G
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
-from bsms.checkpoint import CheckpointError, load_model
+from bsms import viz
+from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.data import NodeType, Scenario
 from bsms.rollout import DEFAULT_BOUND, body_size, rollout, rollout_metrics
-from bsms.trainer import run_dataset_config
+from bsms.run import load_model, run_dataset_config
+from datagen import simulate
 from datagen.atomic import atomic_path
+from datagen.dataset import DatasetError
+from datagen.families import place
 from datagen.mesh import Mesh, MeshError
+from datagen.scenes import get_scene
+from datagen.simulation import resolve_config
 
 __all__ = ["InferError", "infer", "main"]
 
@@ -47,8 +56,6 @@ def read_mesh(path, dim: int, run_dir) -> Mesh:
 
 def parse_overrides(items) -> dict:
     """``["E=2e4", "velocities=[[0, -0.3]]"]`` -> {"E": 20000.0, "velocities": [[0, -0.3]]}."""
-    import yaml
-
     out = {}
     for item in items or ():
         key, sep, text = item.partition("=")
@@ -71,10 +78,6 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
 
     Returns the summary written to ``summary.json`` (with ``out``, the output folder).
     """
-    from datagen.families import place
-    from datagen.scenes import get_scene
-    from datagen.simulation import resolve_config
-
     run_dir = Path(run_dir)
     model, config, state = load_model(run_dir, which)
     dim = int(state["dim"])
@@ -109,8 +112,6 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     }
     truth = None
     if solver:
-        from datagen import simulate
-
         start = time.perf_counter()
         trajectory = simulate(sim_config)
         summary["solver_seconds"] = time.perf_counter() - start
@@ -127,8 +128,6 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
 
 
 def _write_outputs(folder: Path, scene, predicted: np.ndarray, truth, frame_dt: float) -> None:
-    from bsms import viz
-
     times = frame_dt * np.arange(len(predicted))
     data = {}
     if truth is not None:
@@ -142,11 +141,6 @@ def _write_outputs(folder: Path, scene, predicted: np.ndarray, truth, frame_dt: 
 
 
 def main(argv=None) -> int:
-    import argparse
-    import sys
-
-    from datagen.dataset import DatasetError
-
     parser = argparse.ArgumentParser(prog="python -m bsms.infer", description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", help="a run folder written by train.py (runs/<name>)")
     parser.add_argument("--mesh", action="append", required=True, help="mesh file (repeat for several bodies)")

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from bsms.data import NodeType, Scenario
 
@@ -72,8 +73,6 @@ def rollout(model, scenario: Scenario, initial_positions: np.ndarray, initial_ve
     warmup: untimed model calls on the first state before the timed steps (one-off start-up
         costs such as allocator growth and kernel selection are not per-step costs).
     """
-    from tqdm import tqdm
-
     device = torch.device(device)
     model = model.to(device).eval()
     kinematic = scenario.node_type != NodeType.FREE

@@ -1,9 +1,10 @@
-"""Training: typed run configs, the dataset a run needs, and a resumable (multi-process) trainer.
+"""Training: a resumable, interruptible, multi-process trainer of the model a run config describes.
 
-A run lives in ``<runs>/<name>/``: ``config.yaml`` (the resolved config), ``metrics.csv``
-(step, loss, lr, seconds, samples_per_s, valid_rmse) and ``checkpoints/{latest,best}.pt``.
-Checkpoints hold the model with its normalisers, the optimiser, the scheduler, the step and
-the RNG states; they are written atomically and read with ``weights_only=True``.
+The run folder (:mod:`bsms.run`) gains ``metrics.csv`` (step, loss, lr, seconds,
+samples_per_s, valid_rmse) and ``checkpoints/{latest,best}.pt``. Checkpoints hold the model
+with its normalisers, the optimiser, the scheduler, the step and the RNG states; they are
+written atomically and read with ``weights_only=True``. Ctrl-C (SIGINT) stops training after
+the step under way, with ``latest.pt`` saved at that step; a second Ctrl-C stops at once.
 
 Determinism: the samples of step ``s`` are a function of (seed, s) only (a per-epoch
 permutation), and the training noise of a sample of (seed, s, index), so a resumed run
@@ -17,155 +18,37 @@ one process on the whole batch (normaliser statistics are summed over processes 
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 import random
+import signal
+import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
 import torch.distributed as dist
 from torch_geometric.data import Batch
+from tqdm import tqdm
 
-from bsms.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from bsms.config import ConfigError, apply_overrides, build, load, to_dict
-from bsms.data import FrameDataset, GraphOptions, NoiseOptions
-from bsms.evaluate import EvaluateConfig
-from bsms.models.simulator import LearnedSimulator
+from bsms.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_checkpoint
+from bsms.config import ConfigError, load, to_dict
+from bsms.data import FrameDataset
+from bsms.run import (
+    Config,
+    build_model,
+    checkpoint_path,
+    prepare_dataset,
+    resolve_device,
+    split_files,
+    write_run_files,
+)
 from datagen.atomic import atomic_path
 
-__all__ = [
-    "Config", "DatasetConfig", "ModelConfig", "OptimConfig", "TrainConfig", "Trainer", "build_model",
-    "load_config", "prepare_dataset", "split_files", "METRICS_FIELDS",
-]
+__all__ = ["Trainer", "TrainingDiverged", "lr_factor", "METRICS_FIELDS"]
 
 METRICS_FIELDS = ("step", "loss", "lr", "seconds", "samples_per_s", "valid_rmse")
-
-
-# ----------------------------------------------------------------------------- config
-@dataclass
-class DatasetConfig:
-    """config: the dataset YAML (``configs/datasets/...``); root: folder of datasets;
-    generate: generate missing trajectories (resumable) before training; workers: processes
-    for that."""
-
-    config: str = ""
-    root: str = "data"
-    generate: bool = True
-    workers: int = 1
-
-    def validate(self, prefix: str) -> None:
-        if not self.config:
-            raise ConfigError(f"config key '{prefix}.config' is required: the dataset config YAML, "
-                              "e.g. configs/datasets/glyphs_quick.yaml")
-        if self.workers < 1:
-            raise ConfigError(f"config key '{prefix}.workers' must be >= 1, got {self.workers}")
-
-
-@dataclass
-class ModelConfig:
-    """name: the core network; latent: width of latents and hidden layers; hidden_layers per
-    MLP; passes: message passes of meshgraphnets (bsms_gnn makes one per level)."""
-
-    name: Literal["bsms_gnn", "meshgraphnets"] = "bsms_gnn"
-    latent: int = 128
-    hidden_layers: int = 2
-    passes: int = 15
-
-    def validate(self, prefix: str) -> None:
-        for key in ("latent", "hidden_layers", "passes"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"config key '{prefix}.{key}' must be >= 1, got {getattr(self, key)}")
-
-
-@dataclass
-class OptimConfig:
-    """AdamW with a linear warm-up over ``warmup`` steps, then a cosine decay to
-    ``lr * min_lr_ratio`` at the last step; gradients clipped to norm ``grad_clip`` (null: off)."""
-
-    lr: float = 1e-3
-    weight_decay: float = 0.0
-    warmup: int = 100
-    min_lr_ratio: float = 0.01
-    grad_clip: float | None = 1.0
-
-    def validate(self, prefix: str) -> None:
-        if self.lr <= 0:
-            raise ConfigError(f"config key '{prefix}.lr' must be positive, got {self.lr}")
-        if self.weight_decay < 0:
-            raise ConfigError(f"config key '{prefix}.weight_decay' must be >= 0, got {self.weight_decay}")
-        if self.warmup < 0:
-            raise ConfigError(f"config key '{prefix}.warmup' must be >= 0, got {self.warmup}")
-        if not 0.0 <= self.min_lr_ratio <= 1.0:
-            raise ConfigError(f"config key '{prefix}.min_lr_ratio' must lie in [0, 1], got {self.min_lr_ratio}")
-        if self.grad_clip is not None and self.grad_clip <= 0:
-            raise ConfigError(f"config key '{prefix}.grad_clip' must be positive or null, got {self.grad_clip}")
-
-
-@dataclass
-class TrainConfig:
-    """steps and batch_size (graphs per step, over all processes); normalizer_steps: batches
-    the normalisers learn from before they freeze; log/valid/checkpoint cadence in steps;
-    valid_samples: validation samples (evenly spread over the split); device: auto, cpu, cuda
-    or cuda:N; amp: bfloat16 autocast (CUDA only); workers: data-loading processes."""
-
-    steps: int = 10_000
-    batch_size: int = 2
-    seed: int = 0
-    normalizer_steps: int = 1000
-    log_every: int = 50
-    valid_every: int = 500
-    valid_samples: int = 200
-    checkpoint_every: int = 500
-    device: str = "auto"
-    amp: bool = False
-    workers: int = 0
-    progress: bool = True
-
-    def validate(self, prefix: str) -> None:
-        for key in ("steps", "batch_size", "normalizer_steps", "log_every", "valid_every", "valid_samples",
-                    "checkpoint_every"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"config key '{prefix}.{key}' must be >= 1, got {getattr(self, key)}")
-        if self.seed < 0 or self.workers < 0:
-            key = "seed" if self.seed < 0 else "workers"
-            raise ConfigError(f"config key '{prefix}.{key}' must be >= 0, got {getattr(self, key)}")
-        if self.device != "auto" and self.device != "cpu" and not self.device.startswith("cuda"):
-            raise ConfigError(f"config key '{prefix}.device' must be auto, cpu, cuda or cuda:N, got {self.device!r}")
-
-
-@dataclass
-class Config:
-    """A training run: what data, which graphs, which model, how to optimise and train."""
-
-    name: str = ""
-    runs: str = "runs"
-    dataset: DatasetConfig = field(default_factory=DatasetConfig)
-    graph: GraphOptions = field(default_factory=GraphOptions)
-    noise: NoiseOptions = field(default_factory=NoiseOptions)
-    model: ModelConfig = field(default_factory=ModelConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    train: TrainConfig = field(default_factory=TrainConfig)
-    evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
-
-    def validate(self, prefix: str = "") -> None:
-        if not self.name or "/" in self.name or self.name.startswith("."):
-            raise ConfigError(f"config key 'name' must be a run folder name (no '/'), got {self.name!r}")
-
-    @property
-    def run_dir(self) -> Path:
-        return Path(self.runs) / self.name
-
-
-def load_config(source, overrides: list[str] = ()) -> Config:
-    """A checked :class:`Config` from a YAML path or a mapping, with ``key=value`` overrides."""
-    data = load(source) if isinstance(source, (str, Path)) else dict(source)
-    return build(Config, apply_overrides(data, list(overrides)))
-
 
 # These may change when a run is resumed; anything else must match the run's saved config.
 _OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.workers", "dataset.generate"}
@@ -179,73 +62,7 @@ def _flat(data: dict, prefix: str = "") -> dict:
     return out
 
 
-# ----------------------------------------------------------------------------- data
-def _dataset_config_path(config: Config, base: Path | None) -> Path:
-    path = Path(config.dataset.config)
-    if not path.is_file() and base is not None and (base / path).is_file():
-        path = base / path
-    if not path.is_file():
-        raise ConfigError(f"config key 'dataset.config': dataset config {config.dataset.config} does not exist "
-                          "(give a path relative to the working folder, e.g. configs/datasets/glyphs_quick.yaml)")
-    return path
-
-
-def prepare_dataset(config: Config, base: Path | None = None, progress: bool = True) -> Path:
-    """The dataset folder of ``config``, generated first where trajectories are missing.
-
-    base: folder that a relative ``dataset.config`` may also be relative to (the config file's).
-    """
-    from datagen.generate import generate, jobs, load_dataset_config, trajectory_path
-    from datagen.metadata import write_metadata
-
-    path = _dataset_config_path(config, base)
-    dconfig = load_dataset_config(path)
-    root = Path(config.dataset.root)
-    missing = [(s, k) for s, k in jobs(dconfig) if not trajectory_path(root, dconfig, s, k).is_file()]
-    if missing and not config.dataset.generate:
-        raise ConfigError(f"dataset {dconfig['dataset']} lacks {len(missing)} trajectory files under {root}; "
-                          f"generate them with python -m datagen {path} --out {root}, or set dataset.generate: true")
-    if missing:
-        generate(path, out=root, workers=config.dataset.workers, progress=progress)
-    folder = root / dconfig["dataset"]
-    if not (folder / "metadata.json").is_file():
-        write_metadata(folder, dconfig)
-    return folder
-
-
-def run_dataset_config(run_dir, config: Config) -> dict:
-    """The generating dataset config of a run: its ``dataset.json``, else ``config.dataset.config``."""
-    from bsms.checkpoint import CheckpointError
-    from datagen.generate import load_dataset_config
-
-    saved = Path(run_dir) / "dataset.json"
-    if saved.is_file():
-        return json.loads(saved.read_text())
-    try:
-        return load_dataset_config(config.dataset.config)
-    except ConfigError as exc:
-        raise CheckpointError(f"run folder {run_dir} has no dataset.json and its dataset config cannot be read "
-                              f"({exc}); run from the folder train.py ran in") from None
-
-
-def split_files(folder: Path, split: str) -> list[Path]:
-    files = sorted((Path(folder) / split).glob("*.h5"))
-    if not files:
-        raise ConfigError(f"dataset folder {folder} has no {split} trajectories; its config must give "
-                          f"splits.{split} > 0")
-    return files
-
-
-# ----------------------------------------------------------------------------- model and schedule
-def build_model(config: Config, dim: int) -> LearnedSimulator:
-    """The learned simulator a config describes, for dimension ``dim`` (untrained)."""
-    return LearnedSimulator(
-        config.model.name, dim, n_levels=config.graph.levels, contact=config.graph.contact,
-        n_constants=len(config.graph.constants), latent=config.model.latent, n_passes=config.model.passes,
-        hidden_layers=config.model.hidden_layers, max_accumulations=config.train.normalizer_steps,
-    )
-
-
+# ----------------------------------------------------------------------------- schedule, RNG, interrupts
 def lr_factor(step: int, warmup: int, total: int, min_ratio: float) -> float:
     """Learning-rate multiplier at ``step``: linear warm-up to 1, then cosine to ``min_ratio``."""
     if step < warmup:
@@ -263,6 +80,13 @@ def _rng_state() -> dict:
     }
 
 
+def _seed_everything(seed: int) -> None:
+    """Seed every global RNG a run may draw from (torch, numpy's legacy one, Python's) from the config."""
+    torch.manual_seed(seed)
+    np.random.seed(seed % 2**32)  # noqa: NPY002 (the legacy global RNG, for code that uses it)
+    random.seed(seed)
+
+
 def _set_rng_state(state: dict) -> None:
     torch.set_rng_state(state["torch"])
     pos, has_gauss, gauss = state["numpy_rest"]
@@ -271,16 +95,55 @@ def _set_rng_state(state: dict) -> None:
     random.setstate((3, tuple(state["python"]), state["python_gauss"]))
 
 
-# ----------------------------------------------------------------------------- trainer
+class _StopRequest:
+    """While active (main thread only), the first SIGINT or SIGTERM is recorded instead of acted
+    on, so that training stops between steps with a consistent state and saves it; a second
+    one raises KeyboardInterrupt at once. ``signal_name`` says which arrived."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    requested = False
+    signal_name = ""
+
+    def __enter__(self) -> _StopRequest:
+        self._previous = {}
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {sig: signal.signal(sig, self._record) for sig in self.SIGNALS}
+        return self
+
+    def _record(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested, self.signal_name = True, signal.Signals(signum).name
+
+    def __exit__(self, *exc) -> None:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss, a gradient or the weights went non-finite; the message names the step, what
+    went non-finite, the usual causes and what latest.pt holds. ``weights_finite``: whether the
+    weights were still finite (then they are saved in latest.pt)."""
+
+    weights_finite = False
+
+
+def _ignore_interrupts(worker_id: int) -> None:
+    """Data-loading workers leave Ctrl-C and SIGTERM to the trainer, which stops between steps."""
+    for sig in _StopRequest.SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+
+
 def _collate(graphs):
     return Batch.from_data_list(graphs)
 
 
+# ----------------------------------------------------------------------------- trainer
 class Trainer:
     """Trains the model of ``config`` on its dataset, writing the run folder (rank 0 only).
 
     Args:
-        config: the run's :class:`Config`.
+        config: the run's :class:`~bsms.run.Config`.
         resume: continue from ``<run>/checkpoints/latest.pt``; without it a run folder that
             already holds a checkpoint is an error (nothing is overwritten).
         dataset_folder: the dataset (default: prepared from ``config.dataset``).
@@ -291,28 +154,11 @@ class Trainer:
         self.config = config
         self.rank, self.world = self._init_distributed()
         self.device = self._device()
-        if config.train.amp and self.device.type != "cuda":
-            raise ConfigError("config key 'train.amp' needs a CUDA device (bfloat16 autocast); set train.amp: false "
-                              "on CPU")
-        if config.train.batch_size < self.world:
-            raise ConfigError(f"config key 'train.batch_size' ({config.train.batch_size}) must be at least the "
-                              f"number of processes ({self.world})")
         self.run_dir = config.run_dir
-        self.latest = self.run_dir / "checkpoints" / "latest.pt"
-        self.best_path = self.run_dir / "checkpoints" / "best.pt"
-        if not resume and self.latest.exists():
-            raise ConfigError(f"run folder {self.run_dir} already holds a checkpoint; pass --resume to continue it, "
-                              f"or choose another name (name=...)")
-        if resume and not self.latest.exists():
-            raise ConfigError(f"cannot resume: {self.latest} does not exist; start the run without --resume")
+        self.latest, self.best_path = checkpoint_path(self.run_dir, "latest"), checkpoint_path(self.run_dir, "best")
+        self._check_run_folder(resume)
         progress = config.train.progress and self.rank == 0
-        if dataset_folder is None:
-            dataset_folder = prepare_dataset(config, base, progress) if self.rank == 0 else None
-            if self.world > 1:
-                holder = [str(dataset_folder)]
-                dist.broadcast_object_list(holder, src=0)
-                dataset_folder = holder[0]
-        self.dataset_folder = Path(dataset_folder)
+        self.dataset_folder = Path(self._dataset_folder(dataset_folder, base, progress))
         cache = self.dataset_folder / "hierarchies"
         self.train_set = FrameDataset(split_files(self.dataset_folder, "train"), config.graph, config.noise,
                                       cache_dir=cache, progress=progress)
@@ -321,14 +167,13 @@ class Trainer:
         if len(self.train_set) < config.train.batch_size:
             raise ConfigError(f"config key 'train.batch_size' ({config.train.batch_size}) exceeds the "
                               f"{len(self.train_set)} training samples of {self.dataset_folder}")
-        torch.manual_seed(config.train.seed)
+        _seed_everything(config.train.seed)
         self.model = build_model(config, self.train_set.dim).to(self.device)
         if self.world > 1:
             for tensor in [*self.model.parameters(), *self.model.buffers()]:
                 dist.broadcast(tensor.data, src=0)
-        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.optim.lr,
-                                           weight_decay=config.optim.weight_decay)
         o = config.optim
+        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=o.lr, weight_decay=o.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
             self.optimizer, lambda s: lr_factor(s, o.warmup, config.train.steps, o.min_lr_ratio))
         self.step, self.best_valid, self.seconds = 0, math.inf, 0.0
@@ -336,7 +181,9 @@ class Trainer:
             self._check_resumable()
             self._restore(load_checkpoint(self.latest))
         elif self.rank == 0:
-            self._start_run_folder()
+            write_run_files(config, self.dataset_folder)
+            with atomic_path(self.run_dir / "metrics.csv") as tmp:
+                tmp.write_text(",".join(METRICS_FIELDS) + "\n")
 
     # -- setup
     @staticmethod
@@ -350,29 +197,37 @@ class Trainer:
         return 0, 1
 
     def _device(self) -> torch.device:
-        name = self.config.train.device
-        if name == "auto":
-            name = "cuda" if torch.cuda.is_available() else "cpu"
-        if name.startswith("cuda"):
-            if not torch.cuda.is_available():
-                raise ConfigError(f"config key 'train.device' is {name!r} but CUDA is not available; use cpu or auto")
-            if name == "cuda" and self.world > 1:
-                name = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
-            torch.cuda.set_device(torch.device(name))
-        return torch.device(name)
+        t = self.config.train
+        device = resolve_device(t.device, "train.device")
+        if device.type == "cuda":
+            if device.index is None:  # set_device needs an index: this process's GPU
+                local = int(os.environ.get("LOCAL_RANK", "0")) if self.world > 1 else torch.cuda.current_device()
+                device = torch.device("cuda", local)
+            torch.cuda.set_device(device)
+        elif t.amp:
+            raise ConfigError("config key 'train.amp' needs a CUDA device (bfloat16 autocast); set train.amp: false "
+                              "on CPU")
+        if t.batch_size < self.world:
+            raise ConfigError(f"config key 'train.batch_size' ({t.batch_size}) must be at least the "
+                              f"number of processes ({self.world})")
+        return device
 
-    def _start_run_folder(self) -> None:
-        import yaml
+    def _check_run_folder(self, resume: bool) -> None:
+        if not resume and self.latest.exists():
+            raise ConfigError(f"run folder {self.run_dir} already holds a checkpoint; pass --resume to continue it, "
+                              f"or choose another name (name=...)")
+        if resume and not self.latest.exists():
+            raise ConfigError(f"cannot resume: {self.latest} does not exist; start the run without --resume")
 
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        with atomic_path(self.run_dir / "config.yaml") as tmp:
-            tmp.write_text(yaml.safe_dump(to_dict(self.config), sort_keys=False))
-        with atomic_path(self.run_dir / "metrics.csv") as tmp:
-            tmp.write_text(",".join(METRICS_FIELDS) + "\n")
-        metadata = self.dataset_folder / "metadata.json"
-        if metadata.is_file():  # the dataset's generating config, so the run folder stands alone
-            with atomic_path(self.run_dir / "dataset.json") as tmp:
-                tmp.write_text(json.dumps(json.loads(metadata.read_text())["config"], indent=1))
+    def _dataset_folder(self, given, base: Path | None, progress: bool):
+        if given is not None:
+            return given
+        folder = prepare_dataset(self.config, base, progress) if self.rank == 0 else None
+        if self.world > 1:
+            holder = [str(folder)]
+            dist.broadcast_object_list(holder, src=0)
+            folder = holder[0]
+        return folder
 
     def _check_resumable(self) -> None:
         saved_path = self.run_dir / "config.yaml"
@@ -406,14 +261,14 @@ class Trainer:
             with open(path, newline="") as fh:
                 rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= self.step]
         with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, METRICS_FIELDS)
+            writer = csv.DictWriter(fh, METRICS_FIELDS, lineterminator="\n")
             writer.writeheader()
             writer.writerows(rows)
 
     # -- checkpoints
     def state(self) -> dict:
         return {
-            "format": 1, "config": to_dict(self.config), "dim": self.train_set.dim, "step": self.step,
+            "format": FORMAT, "config": to_dict(self.config), "dim": self.train_set.dim, "step": self.step,
             "best_valid": self.best_valid, "seconds": self.seconds, "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(), "rng": _rng_state(),
         }
@@ -436,9 +291,12 @@ class Trainer:
 
     def _loader(self, start: int, stop: int):
         keys = [self._keys(s) for s in range(start, stop)]
+        # the loader's own generator, so that starting it does not draw from the global torch RNG
+        # (a resumed run then continues the global stream, e.g. of dropout, exactly)
+        generator = torch.Generator().manual_seed(self.config.train.seed * 1_000_003 + start)
         return torch.utils.data.DataLoader(
             self.train_set, batch_sampler=keys, collate_fn=_collate, num_workers=self.config.train.workers,
-            persistent_workers=False,
+            persistent_workers=False, worker_init_fn=_ignore_interrupts, generator=generator,
         )
 
     # -- one step
@@ -454,22 +312,45 @@ class Trainer:
             loss = self.model.loss(batch, accumulate=accumulate, reduction="sum") / count.clamp(min=1).float()
         self.optimizer.zero_grad(set_to_none=False)
         loss.backward()
+        loss = loss.detach()
         if self.world > 1:
             grads = [p.grad for p in self.model.parameters()]
             flat = torch.cat([g.reshape(-1) for g in grads])
             dist.all_reduce(flat)
             torch.nn.utils.vector_to_parameters(flat, grads)
-            reduced = loss.detach().clone()
-            dist.all_reduce(reduced)
-            value = float(reduced)
-        else:
-            value = float(loss.detach())
-        if self.config.optim.grad_clip is not None:
-            torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.optim.grad_clip)
+            dist.all_reduce(loss)
+        clip = self.config.optim.grad_clip
+        norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), math.inf if clip is None else clip)
+        self._check_finite(loss, norm)
         self.optimizer.step()
+        self._check_weights()
         self.scheduler.step()
         self.step += 1
-        return value
+        return float(loss)
+
+    def _diverged(self, what: str) -> TrainingDiverged:
+        o = self.config.optim
+        return TrainingDiverged(
+            f"training diverged at step {self.step + 1}: {what}. Usual causes: a learning rate too large "
+            f"(optim.lr is {o.lr:g}; 1e-4 to 1e-3 is typical), no gradient clipping (optim.grad_clip is "
+            f"{o.grad_clip}), or training data with huge values")
+
+    def _check_finite(self, loss: torch.Tensor, grad_norm: torch.Tensor) -> None:
+        """TrainingDiverged (weights still finite) before an update from a non-finite loss or gradient."""
+        bad = [name for name, value in (("loss", loss), ("gradient norm", grad_norm)) if not torch.isfinite(value)]
+        if bad:
+            error = self._diverged(f"the {' and the '.join(bad)} went non-finite (loss {float(loss):.4g}, "
+                                   f"gradient norm {float(grad_norm):.4g})")
+            error.weights_finite = True
+            raise error
+
+    def _check_weights(self) -> None:
+        """TrainingDiverged (weights not finite) after an update that overflowed them."""
+        bad = [name for name, p in self.model.named_parameters() if not bool(torch.isfinite(p).all())]
+        if bad:
+            error = self._diverged(f"the update made {len(bad)} weight tensors non-finite ({bad[0]}, ...)")
+            error.weights_finite = False
+            raise error
 
     @torch.no_grad()
     def validate(self) -> float:
@@ -489,63 +370,84 @@ class Trainer:
         return math.sqrt(squared / max(count, 1))
 
     # -- the loop
-    def _log(self, row: dict) -> None:
+    def _after_divergence(self, exc: TrainingDiverged) -> TrainingDiverged:
+        """Save the weights if they are still finite; the error, completed with what latest.pt holds."""
+        if exc.weights_finite:
+            self.save(self.latest)
+            held = f"{self.latest} holds the last finite weights (step {self.step})"
+        elif self.latest.exists():
+            held = (f"{self.latest} keeps its last checkpoint (step {int(load_checkpoint(self.latest)['step'])}), "
+                    "whose weights are finite")
+        else:
+            held = "no checkpoint was written before it"
+        done = TrainingDiverged(f"{exc}; {held}")
+        done.weights_finite = exc.weights_finite
+        return done
+
+    def _validate_and_keep_best(self) -> float | None:
+        """Validation RMSE on rank 0 (None elsewhere); best.pt follows the best so far."""
+        rmse = None
+        if self.rank == 0:
+            rmse = self.validate()
+            if rmse < self.best_valid:
+                self.best_valid = rmse
+                self.save(self.best_path)
+        if self.world > 1:
+            holder = [self.best_valid]
+            dist.broadcast_object_list(holder, src=0)
+            self.best_valid = holder[0]
+        return rmse
+
+    def _log(self, losses: list[float], since: float, rmse: float | None) -> None:
+        """Append a row to metrics.csv: mean loss, lr, time and throughput over the steps since ``since``."""
+        elapsed = time.perf_counter() - since
+        row = {"step": self.step, "loss": f"{np.mean(losses):.6g}", "lr": f"{self.scheduler.get_last_lr()[0]:.6g}",
+               "seconds": f"{self.seconds:.3f}",
+               "samples_per_s": f"{len(losses) * self.config.train.batch_size / max(elapsed, 1e-9):.3f}",
+               "valid_rmse": "" if rmse is None else f"{rmse:.6g}"}
         with open(self.run_dir / "metrics.csv", "a", newline="") as fh:
-            csv.DictWriter(fh, METRICS_FIELDS).writerow(row)
+            csv.DictWriter(fh, METRICS_FIELDS, lineterminator="\n").writerow(row)
+
+    def _stop_requested(self, stop: _StopRequest) -> bool:
+        if self.world == 1:
+            return stop.requested
+        flag = torch.tensor([float(stop.requested)], device=self.device)
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+        return bool(flag.item())
 
     def fit(self, stop_at: int | None = None) -> dict:
-        """Train until ``train.steps`` (or ``stop_at``, then save as if interrupted).
+        """Train until ``train.steps`` (or ``stop_at``, then save as if interrupted), or Ctrl-C.
 
-        Returns a summary: steps, final loss, best validation RMSE, seconds.
+        Returns a summary: steps, final loss, best validation RMSE, seconds, and whether a
+        Ctrl-C stopped it (``interrupted``; latest.pt then holds the step reached).
         """
-        from tqdm import tqdm
-
         t = self.config.train
         stop = t.steps if stop_at is None else min(stop_at, t.steps)
         bar = tqdm(total=t.steps, initial=self.step, desc=self.config.name, unit="step",
                    disable=not (t.progress and self.rank == 0))
-        losses, window_start, window_steps = [], time.perf_counter(), 0
-        last_loss = math.nan
-        try:
+        losses, since = [], time.perf_counter()
+        last_loss, interrupted = math.nan, False
+        with bar, _StopRequest() as request:
             for batch in self._loader(self.step, stop):
                 start = time.perf_counter()
-                last_loss = self.train_step(batch)
+                try:
+                    last_loss = self.train_step(batch)
+                except TrainingDiverged as exc:
+                    raise self._after_divergence(exc) from None
                 self.seconds += time.perf_counter() - start
                 losses.append(last_loss)
-                window_steps += 1
                 bar.update()
-                bar.set_postfix(loss=f"{last_loss:.3g}")
                 validate = self.step % t.valid_every == 0 or self.step == t.steps
-                row = None
+                rmse = self._validate_and_keep_best() if validate else None
+                bar.set_postfix(loss=f"{last_loss:.3g}", **({} if rmse is None else {"valid": f"{rmse:.3g}"}))
                 if self.step % t.log_every == 0 or validate:
-                    elapsed = time.perf_counter() - window_start
-                    row = {"step": self.step, "loss": f"{np.mean(losses):.6g}",
-                           "lr": f"{self.scheduler.get_last_lr()[0]:.6g}", "seconds": f"{self.seconds:.3f}",
-                           "samples_per_s": f"{window_steps * t.batch_size / max(elapsed, 1e-9):.3f}",
-                           "valid_rmse": ""}
-                    losses, window_start, window_steps = [], time.perf_counter(), 0
-                if validate:
                     if self.rank == 0:
-                        rmse = self.validate()
-                        row["valid_rmse"] = f"{rmse:.6g}"
-                        bar.set_postfix(loss=f"{last_loss:.3g}", valid=f"{rmse:.3g}")
-                        if rmse < self.best_valid:
-                            self.best_valid = rmse
-                            self.save(self.best_path)
-                    if self.world > 1:
-                        holder = [self.best_valid]
-                        dist.broadcast_object_list(holder, src=0)
-                        self.best_valid = holder[0]
-                if row is not None and self.rank == 0:
-                    self._log(row)
-                if self.step % t.checkpoint_every == 0 or self.step == stop:
+                        self._log(losses, since, rmse)
+                    losses, since = [], time.perf_counter()
+                interrupted = self._stop_requested(request)
+                if self.step % t.checkpoint_every == 0 or self.step == stop or interrupted:
                     self.save(self.latest)
-        except KeyboardInterrupt:
-            self.save(self.latest)
-            bar.close()
-            raise
-        bar.close()
-        if self.step == stop:
-            self.save(self.latest)
-        return {"steps": self.step, "loss": last_loss, "best_valid_rmse": self.best_valid, "seconds": self.seconds}
-
+                if interrupted:
+                    break
+        return {"steps": self.step, "loss": last_loss, "best_valid_rmse": self.best_valid, "seconds": self.seconds,
+                "interrupted": interrupted, "signal": request.signal_name}

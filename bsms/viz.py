@@ -6,10 +6,14 @@ Every function writes one file (atomically) and returns its path; matplotlib run
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
+import shutil
+import tempfile
 from pathlib import Path
 
+import meshio
 import numpy as np
 
 from datagen.atomic import atomic_path
@@ -86,20 +90,21 @@ def error_curves(curves: dict[str, list[np.ndarray]], frame_dt: float, path, bou
 def speed_accuracy_chart(points: list[dict], path) -> Path:
     """Wall seconds per simulated second (x) against rollout RMSE (y), one point per method.
 
-    points: dicts with ``label``, ``kind`` ("learned", "solver", or "reference": the ground
-    truth's own solver, drawn as a vertical line at its cost), ``seconds_per_sim_second``,
+    points: dicts with ``label``, ``kind`` ("learned", "solver", or "ground_truth": the solver
+    at the data's own settings, drawn as a vertical line at its cost), ``seconds_per_sim_second``,
     ``rmse`` (m; inf or nan when unstable) and ``unstable`` (count). Unstable points sit at
     the top edge, hollow.
     """
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    finite = [p["rmse"] for p in points if p["kind"] != "reference" and math.isfinite(p["rmse"]) and p["rmse"] > 0]
+    finite = [p["rmse"] for p in points
+              if p["kind"] != "ground_truth" and math.isfinite(p["rmse"]) and p["rmse"] > 0]
     ceiling = 3 * max(finite) if finite else 1.0
     floor = min(finite) / 3 if finite else 1e-6
     for p in points:
-        if p["kind"] == "reference":
+        if p["kind"] == "ground_truth":
             ax.axvline(p["seconds_per_sim_second"], color="tab:blue", ls="--", lw=1)
-            ax.annotate(p["label"] + "\n(the ground truth)", (p["seconds_per_sim_second"], ceiling), fontsize=8,
+            ax.annotate(p["label"], (p["seconds_per_sim_second"], ceiling), fontsize=8,
                         color="tab:blue", xytext=(-4, 0), textcoords="offset points", ha="right", va="top")
             continue
         stable = math.isfinite(p["rmse"]) and p["rmse"] > 0
@@ -117,7 +122,7 @@ def speed_accuracy_chart(points: list[dict], path) -> Path:
         ax.set_xlim(min(xs) / 2, max(xs) * 3)
     ax.set_xlabel("wall seconds per simulated second (lower is faster)")
     ax.set_ylabel("rollout position RMSE (m)")
-    ax.set_title("speed against accuracy (solver reference: the data's own settings)")
+    ax.set_title("speed against accuracy (ground truth: the solver at the data's own settings)")
     ax.grid(alpha=0.3, which="both")
     return _save(fig, path)
 
@@ -128,6 +133,32 @@ def _limits(*arrays) -> tuple[np.ndarray, np.ndarray]:
     lo, hi = stacked.min(axis=0), stacked.max(axis=0)
     pad = 0.05 * (hi - lo).max()
     return lo - pad, hi + pad
+
+
+def _colouring(predicted: np.ndarray, truth: np.ndarray | None, steps: int, frame_dt: float):
+    """(values (T, N) the prediction is coloured by, their label, colour-scale top)."""
+    if truth is not None:
+        values = np.linalg.norm(predicted[:steps] - truth[:steps], axis=-1)
+        label = "position error (m)"
+    else:
+        values = np.zeros(predicted.shape[:2])
+        values[1:] = np.linalg.norm(np.diff(predicted, axis=0), axis=-1) / frame_dt
+        label = "speed (m/s)"
+    top = float(np.nanmax(np.where(np.isfinite(values), values, np.nan))) if np.isfinite(values).any() else 1.0
+    return values, label, top if top > 0 else 1.0
+
+
+def _draw_body(ax, x: np.ndarray, cells: np.ndarray, colour, vmax: float) -> None:
+    """Body positions ``x`` (N, d) on ``ax``: a 2D mesh (coloured where ``colour`` is given) or
+    a 3D point cloud projected on x-y."""
+    if x.shape[-1] == 2:
+        ax.triplot(x[:, 0], x[:, 1], cells, color="0.3", lw=0.3)
+        if colour is not None:
+            ax.tripcolor(x[:, 0], x[:, 1], cells, colour, shading="gouraud", cmap="viridis", vmin=0, vmax=vmax)
+    elif colour is not None:
+        ax.scatter(x[:, 0], x[:, 1], c=colour, s=4, cmap="viridis", vmin=0, vmax=vmax)
+    else:
+        ax.scatter(x[:, 0], x[:, 1], color="0.4", s=4)
 
 
 def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarray | None = None,
@@ -144,50 +175,28 @@ def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarra
 
     steps = min(len(predicted), len(truth)) if truth is not None else len(predicted)
     frames = np.unique(np.linspace(0, steps - 1, min(steps, max_frames)).round().astype(int))
-    dim = predicted.shape[-1]
     panels = 2 if truth is not None else 1
     fig, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 4.2), squeeze=False)
     axes = axes[0]
     lo, hi = _limits(predicted[:steps], truth[:steps] if truth is not None else None,
                      obstacles[0] if obstacles is not None else None)
-    if truth is not None:
-        error = np.linalg.norm(predicted[:steps] - truth[:steps], axis=-1)
-        label = "position error (m)"
-    else:
-        error = np.zeros(predicted.shape[:2])
-        error[1:] = np.linalg.norm(np.diff(predicted, axis=0), axis=-1) / frame_dt
-        label = "speed (m/s)"
-    vmax = float(np.nanmax(np.where(np.isfinite(error), error, np.nan))) if np.isfinite(error).any() else 1.0
-    vmax = vmax if vmax > 0 else 1.0
-    mappable = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, vmax))
-    fig.colorbar(mappable, ax=axes[-1], fraction=0.046, label=label)
+    colour, label, vmax = _colouring(predicted, truth, steps, frame_dt)
+    fig.colorbar(plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, vmax)), ax=axes[-1], fraction=0.046,
+                 label=label)
 
     def draw(frame: int):
-        for ax in axes:
-            ax.clear()
-            ax.set_xlim(lo[0], hi[0])
-            ax.set_ylim(lo[1], hi[1])
-            ax.set_aspect("equal")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if obstacles is not None and len(obstacles[0]):
-                nodes, facets = obstacles
-                for facet in facets:
-                    ax.plot(*nodes[np.append(facet, facet[0])][:, :2].T, color="0.6", lw=1)
         shown = [(truth[frame], None, "solver")] if truth is not None else []
-        shown.append((predicted[frame], error[frame], "learned"))
-        for ax, (x, colour, title) in zip(axes, shown, strict=True):
+        shown.append((predicted[frame], colour[frame], "learned"))
+        for ax, (x, values, title) in zip(axes, shown, strict=True):
+            ax.clear()
+            ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), aspect="equal", xticks=[], yticks=[])
+            if obstacles is not None and len(obstacles[0]):
+                for facet in obstacles[1]:
+                    ax.plot(*obstacles[0][np.append(facet, facet[0])][:, :2].T, color="0.6", lw=1)
             if not np.isfinite(x).all():
                 ax.set_title(f"{title}: not finite")
                 continue
-            if dim == 2:
-                ax.triplot(x[:, 0], x[:, 1], cells, color="0.3", lw=0.3)
-                if colour is not None:
-                    ax.tripcolor(x[:, 0], x[:, 1], cells, colour, shading="gouraud", cmap="viridis", vmin=0,
-                                 vmax=vmax)
-            else:
-                ax.scatter(x[:, 0], x[:, 1], c=colour if colour is not None else "0.4", s=4, cmap="viridis",
-                           vmin=0, vmax=vmax)
+            _draw_body(ax, x, cells, values, vmax)
             ax.set_title(f"{title}, t = {frame * frame_dt:.2f} s", fontsize=9)
         return []
 
@@ -203,12 +212,6 @@ def write_xdmf(path, cells: np.ndarray, positions: np.ndarray, times: np.ndarray
                point_data: dict[str, np.ndarray] | None = None) -> Path:
     """XDMF time series (``path`` + its ``.h5``) of the body for ParaView: node positions per
     frame (as point data ``displacement`` from frame 0 too) and any (T, N[, k]) point data."""
-    import contextlib
-    import shutil
-    import tempfile
-
-    import meshio
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     dim = positions.shape[-1]

@@ -1,5 +1,6 @@
 """Data generation: meshes, scenes and the MPM solver."""
 
-from .simulation import Trajectory, simulate
+from .simulation import simulate
+from .trajectory import NodeType, Trajectory
 
-__all__ = ["simulate", "Trajectory"]
+__all__ = ["simulate", "Trajectory", "NodeType"]

@@ -24,26 +24,18 @@ trajectory gives the same bytes apart from the timing fields (wall times).
 from __future__ import annotations
 
 import json
-from enum import IntEnum
 from pathlib import Path
 
 import numpy as np
 
 from datagen.atomic import atomic_path
 from datagen.mesh import Mesh, MeshError
+from datagen.trajectory import NodeType, Trajectory
 
-__all__ = ["FORMAT_VERSION", "NodeType", "DatasetError", "save", "load", "is_complete", "content_digest"]
+__all__ = ["FORMAT_VERSION", "DatasetError", "save", "load", "is_complete", "content_digest"]
 
 FORMAT_VERSION = 1
 TIMING_FIELDS = ("wall_time", "frames/wall_time")
-
-
-class NodeType(IntEnum):
-    """Role of a node in the learned graph."""
-
-    FREE = 0  # moved by the physics (and by the model)
-    CLAMPED = 1  # moves as prescribed (e.g. a clamped beam end)
-    OBSTACLE = 2  # a node of a wall or container, moves as prescribed
 
 
 class DatasetError(ValueError):
@@ -59,7 +51,7 @@ def _put(group, name: str, array) -> None:
 
 
 def save(path, trajectory) -> Path:
-    """Write ``trajectory`` (a :class:`datagen.Trajectory`) to ``path`` atomically; returns the path."""
+    """Write ``trajectory`` (a :class:`datagen.trajectory.Trajectory`) to ``path`` atomically; returns the path."""
     import h5py
 
     path = Path(path)
@@ -160,7 +152,35 @@ def _checked_arrays(f, path: Path) -> dict:
             raise DatasetError(f"trajectory file {path}: '{name}' has shape {arrays[name].shape}, expected ({n},)")
     if arrays["frames/wall_time"].shape != (t,):
         raise DatasetError(f"trajectory file {path}: 'frames/wall_time' must have one entry per frame ({t})")
+    _check_values(arrays, path)
     return arrays
+
+
+def _check_values(arrays: dict, path: Path) -> None:
+    """Values a trajectory must hold: finite, strictly increasing times, finite states, known node types."""
+    times = arrays["frames/times"]
+    if len(times) == 0:
+        raise DatasetError(f"trajectory file {path} holds no frames")
+    if not np.isfinite(times).all():
+        frame = int(np.flatnonzero(~np.isfinite(times))[0])
+        raise DatasetError(f"trajectory file {path}: 'frames/times' holds NaN or inf at frame {frame}; regenerate it")
+    backwards = np.flatnonzero(np.diff(times) <= 0)
+    if backwards.size:
+        k = int(backwards[0]) + 1
+        raise DatasetError(f"trajectory file {path}: 'frames/times' must increase strictly, but frame {k} is at "
+                           f"t = {times[k]:.6g} after t = {times[k - 1]:.6g}; regenerate it or fix its times")
+    for name in ("frames/positions", "frames/velocities"):
+        finite = np.isfinite(arrays[name]).all(axis=(1, 2))
+        if not finite.all():
+            frame = int(np.flatnonzero(~finite)[0])
+            raise DatasetError(f"trajectory file {path}: '{name}' holds NaN or inf from frame {frame} on; the "
+                               "simulation diverged: regenerate it (smaller solver.dt or cfl), or drop the file")
+    codes = np.unique(arrays["mesh/node_type"])
+    unknown = sorted(set(codes.tolist()) - {int(t) for t in NodeType})
+    if unknown:
+        known = ", ".join(f"{int(t)} ({t.name})" for t in NodeType)
+        raise DatasetError(f"trajectory file {path}: 'mesh/node_type' holds unknown codes {unknown}; "
+                           f"the node types are {known}")
 
 
 def load(path):
@@ -171,11 +191,12 @@ def load(path):
     """
     import h5py
 
-    from datagen.simulation import Trajectory
-
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"trajectory file {path} does not exist")
+    if not h5py.is_hdf5(path):
+        raise DatasetError(f"{path} is not a trajectory file (not HDF5 at all); give a trajectory .h5 written "
+                           "by python -m datagen (a mesh file goes to Mesh.read or bsms.infer --mesh)")
     try:
         with h5py.File(path, "r") as f:
             arrays = _checked_arrays(f, path)
@@ -185,7 +206,7 @@ def load(path):
         raise
     except (OSError, KeyError, ValueError) as exc:
         raise DatasetError(f"trajectory file {path} is truncated or corrupt ({exc}); delete it and "
-                           "regenerate it with python -m datagen") from None
+                           "regenerate it with python -m datagen (complete files are skipped)") from None
     try:
         mesh = Mesh(arrays["mesh/nodes"], arrays["mesh/cells"])
     except MeshError as exc:

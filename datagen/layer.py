@@ -44,7 +44,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse import csgraph
 
-from datagen.mesh import Mesh, MeshError, _first, _quality, signed_measures
+from datagen.mesh import Mesh
+from datagen.simplex import MeshError, name_first, signed_measures, simplex_quality
 
 __all__ = ["ExtendedMesh", "with_extra_layer"]
 
@@ -193,7 +194,7 @@ def _copies(mesh: Mesh, creases: _Creases, thickness: float) -> _Copies:
     cusps = np.unique(creases.cluster_node[alignment < 0.1])
     if cusps.size:
         raise MeshError(
-            f"cannot add an extra layer: boundary {_first(cusps, 'nodes')} are cusps whose facets "
+            f"cannot add an extra layer: boundary {name_first(cusps, 'nodes')} are cusps whose facets "
             "face opposite ways; smooth the geometry or refine the mesh there"
         )
     spacing = thickness * _node_spacing(mesh)
@@ -324,7 +325,7 @@ def with_extra_layer(mesh: Mesh, thickness: float = 1.0, min_quality: float = 0.
         nodes = np.concatenate([mesh.nodes, mesh.nodes[copies.node] + scale[:, None] * copies.offset])
         flip = signed_measures(nodes, layer) < 0
         layer[flip, -2:] = layer[flip][:, [-1, -2]]
-        squeezed = layer[_quality(nodes, layer) < min_quality]
+        squeezed = layer[simplex_quality(nodes, layer) < min_quality]
         if squeezed.size == 0:
             break
         scale[np.unique(squeezed[squeezed >= n]) - n] *= 0.5

@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import io
-import math
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -21,96 +20,71 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 
 from datagen.atomic import atomic_path
+from datagen.simplex import (
+    SIMPLEX_TYPES,
+    MeshError,
+    as_cells,
+    as_nodes,
+    check_cells,
+    merge_coincident_nodes,
+    name_first,
+    signed_measures,
+    simplex_quality,
+)
 
-__all__ = ["Mesh", "MeshError", "EdgeLengthStats", "ExtendedMesh", "with_extra_layer"]
+__all__ = ["Mesh", "MeshError", "EdgeLengthStats"]
 
-SIMPLEX_TYPES = {1: "line", 2: "triangle", 3: "tetra"}
 _MESHIO_DIM = {"line": 1, "triangle": 2, "tetra": 3}
 # Non-simplex meshio cell types a user may reasonably hand us, with their dimension.
 _NON_SIMPLEX_DIM = {
     "quad": 2, "polygon": 2, "hexahedron": 3, "wedge": 3, "pyramid": 3,
     "line3": 1, "triangle6": 2, "quad8": 2, "quad9": 2, "tetra10": 3, "hexahedron20": 3,
 }
-_DEGENERATE_RTOL = 1e-12
-_NAMED = 5  # how many offending cells/nodes an error message lists
 
 
-class MeshError(ValueError):
-    """A mesh (arrays or file) that cannot be used; the message names the problem."""
+def _read_simplices(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(points (N, d), cells (C, d+1)) of the top-dimensional simplices in a meshio file, with
+    coordinates beyond the mesh dimension dropped when they are zero; MeshError otherwise."""
+    import meshio
 
-
-def _first(indices: np.ndarray, what: str) -> str:
-    """'cells [3, 8, 9]' or 'cells [3, 8, 9, 10, 11] and 40 more'."""
-    indices = np.asarray(indices).ravel()
-    shown = ", ".join(str(int(i)) for i in indices[:_NAMED])
-    more = indices.size - _NAMED
-    return f"{what} [{shown}]" + (f" and {more} more" if more > 0 else "")
-
-
-def signed_measures(nodes: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Signed length/area/volume of each simplex: ``det([x1-x0, ..., xd-x0]) / d!``.
-
-    nodes: (N, d), cells: (C, d+1) -> (C,). Positive for the reference orientation.
-    """
-    d = nodes.shape[1]
-    corner = nodes[cells[:, 0]]
-    spans = nodes[cells[:, 1:]] - corner[:, None, :]  # (C, d, d), rows are edge vectors
-    return np.linalg.det(spans) / math.factorial(d)
-
-
-def _cell_max_edge(nodes: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Longest edge of each simplex, (C,)."""
-    k = cells.shape[1]
-    longest = np.zeros(len(cells))
-    for a in range(k):
-        for b in range(a + 1, k):
-            longest = np.maximum(longest, np.linalg.norm(nodes[cells[:, a]] - nodes[cells[:, b]], axis=1))
-    return longest
-
-
-def _quality(nodes: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """(C,) |measure| over that of the regular simplex with the same RMS edge length."""
-    d, k = nodes.shape[1], cells.shape[1]
-    squares = sum(
-        ((nodes[cells[:, a]] - nodes[cells[:, b]]) ** 2).sum(axis=1)
-        for a in range(k) for b in range(a + 1, k)
-    )
-    rms = np.sqrt(squares / (k * (k - 1) / 2))
-    regular = {1: 1.0, 2: math.sqrt(3) / 4, 3: 1 / (6 * math.sqrt(2))}[d]
-    return np.abs(signed_measures(nodes, cells)) / (regular * rms**d)
-
-
-def _as_nodes(nodes) -> np.ndarray:
-    try:
-        arr = np.array(nodes, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise MeshError(f"mesh nodes must be a numeric (N, d) array: {exc}") from None
-    if arr.ndim != 2 or arr.shape[1] not in (1, 2, 3) or arr.shape[0] == 0:
+    if not path.is_file():
+        raise MeshError(f"mesh file {path} does not exist")
+    chatter = io.StringIO()
+    try:  # meshio prints to the console and may even sys.exit on files it cannot parse
+        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
+            raw = meshio.read(path)
+    except (Exception, SystemExit) as exc:
+        detail = " ".join(chatter.getvalue().split()) or f"{type(exc).__name__}: {exc}"
+        if isinstance(exc, IndexError):  # meshio indexes nodes while it reads some formats
+            detail = f"a cell refers to a node the file does not hold ({detail}); re-export the mesh"
+        raise MeshError(f"cannot read mesh file {path}: {detail}") from None
+    blocks = [(b.type, np.asarray(b.data)) for b in raw.cells if len(b.data)]
+    found = sorted({t for t, _ in blocks})
+    dims = [_MESHIO_DIM[t] for t, _ in blocks if t in _MESHIO_DIM]
+    if not dims:
         raise MeshError(
-            f"mesh nodes must have shape (N, d) with N >= 1 and d in 1, 2, 3; got shape {arr.shape}"
+            f"mesh file {path} has no usable cells: found {found or 'no cells at all'}, but bsms "
+            "needs simplices (line, triangle or tetra); triangulate the mesh first"
         )
-    bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
-    if bad.size:
-        raise MeshError(f"non-finite coordinates (NaN or inf) at {_first(bad, 'nodes')}")
-    return arr
-
-
-def _as_cells(cells, n_nodes: int, dim: int) -> np.ndarray:
-    arr = np.asarray(cells)
-    if arr.dtype == bool or not (np.issubdtype(arr.dtype, np.integer) or arr.size == 0):
-        raise MeshError(f"mesh cells must be an integer array of node indices; got dtype {arr.dtype}")
-    if arr.ndim != 2 or arr.shape[0] == 0:
-        raise MeshError(f"mesh cells must have shape (C, d+1) with C >= 1; got shape {arr.shape}")
-    if arr.shape[1] != dim + 1:
+    dim = max(dims)
+    higher = [t for t in found if _NON_SIMPLEX_DIM.get(t, 0) >= dim]
+    if higher:
         raise MeshError(
-            f"wrong cell arity: cells have {arr.shape[1]} nodes each, but nodes have {dim} "
-            f"coordinates, so each cell must be a {SIMPLEX_TYPES[dim]} with {dim + 1} nodes"
+            f"mesh file {path} mixes cell types: {found}; bsms reads one simplex type "
+            f"({SIMPLEX_TYPES[dim]} here) and cannot use {higher}: convert them to simplices"
         )
-    arr = arr.astype(np.int64)
-    bad = np.flatnonzero(((arr < 0) | (arr >= n_nodes)).any(axis=1))
-    if bad.size:
-        raise MeshError(f"node indices out of range [0, {n_nodes}) in {_first(bad, 'cells')}")
-    return arr
+    cells = np.concatenate([data for t, data in blocks if _MESHIO_DIM.get(t) == dim])
+    points = np.asarray(raw.points, dtype=np.float64)
+    if points.shape[1] < dim:
+        raise MeshError(f"mesh file {path} has {points.shape[1]}D points but {SIMPLEX_TYPES[dim]} cells")
+    extra = points[:, dim:]
+    if extra.size and np.abs(extra).max() > 0:
+        raise MeshError(
+            f"mesh file {path} holds a {dim}D mesh ({SIMPLEX_TYPES[dim]} cells) embedded in "
+            f"{points.shape[1]}D with non-zero coordinates beyond axis {dim}; bsms needs it in "
+            f"its own {dim}D coordinates (e.g. z = 0 for a planar mesh)"
+        )
+    return points[:, :dim], cells
 
 
 @dataclass(frozen=True)
@@ -133,53 +107,36 @@ class Mesh:
     Raises:
         MeshError: naming the problem and the first offending cells or nodes, for wrong
             shapes or arity, non-finite coordinates, indices out of range, nodes used by no
-            cell, and inverted (negative measure) or degenerate (zero measure) cells.
+            cell, inverted (negative measure) or degenerate (zero measure) cells, cells
+            repeated over the same nodes, and coincident nodes (copies of one point, closer
+            than 1e-8 times the median cell size, which cut the mesh apart along them).
     """
 
     def __init__(self, nodes, cells):
-        nodes = _as_nodes(nodes)
-        cells = _as_cells(cells, len(nodes), nodes.shape[1])
-        used = np.zeros(len(nodes), dtype=bool)
-        used[cells.ravel()] = True
-        if not used.all():
-            raise MeshError(
-                f"{_first(np.flatnonzero(~used), 'nodes')} are used by no cell; remove them "
-                "(Mesh.from_arrays(..., drop_unused=True) does)"
-            )
-        measures = signed_measures(nodes, cells)
-        tol = _DEGENERATE_RTOL * _cell_max_edge(nodes, cells) ** nodes.shape[1]
-        degenerate = np.flatnonzero(np.abs(measures) <= tol)
-        if degenerate.size:
-            raise MeshError(
-                f"degenerate cells (zero {self._measure_word(nodes.shape[1])}): {_first(degenerate, 'cells')}"
-            )
-        inverted = np.flatnonzero(measures < 0)
-        if inverted.size:
-            raise MeshError(
-                f"inverted cells (negative signed {self._measure_word(nodes.shape[1])}): "
-                f"{_first(inverted, 'cells')}, {inverted.size} of {len(cells)} cells; "
-                "if the mesh is valid but its cells are ordered inconsistently, build it with "
-                "Mesh.from_arrays(..., orient=True) or Mesh.read(path, orient=True)"
-            )
+        nodes = as_nodes(nodes)
+        cells = as_cells(cells, len(nodes), nodes.shape[1])
+        measures = check_cells(nodes, cells)
         nodes.setflags(write=False)
         cells.setflags(write=False)
         measures.setflags(write=False)
         self._nodes, self._cells, self._measures = nodes, cells, measures
 
-    @staticmethod
-    def _measure_word(dim: int) -> str:
-        return {1: "length", 2: "area", 3: "volume"}[dim]
-
     @classmethod
-    def from_arrays(cls, nodes, cells, *, drop_unused: bool = False, orient: bool = False) -> Mesh:
+    def from_arrays(cls, nodes, cells, *, drop_unused: bool = False, orient: bool = False,
+                    merge_coincident: bool = False) -> Mesh:
         """Build a mesh from raw arrays, optionally repairing what a generator leaves behind.
 
+        merge_coincident: join nodes that are copies of one point (see :func:`coincident_nodes`);
+            each group keeps its smallest index, and the copies become unused nodes (so
+            drop them with ``drop_unused``).
         drop_unused: remove nodes that no cell uses (renumbering the rest in order).
         orient: reorder the nodes of every negatively oriented cell. Only for meshes known to
             be untangled (from a mesher); it would hide genuinely inverted cells.
         """
-        nodes = _as_nodes(nodes)
-        cells = _as_cells(cells, len(nodes), nodes.shape[1])
+        nodes = as_nodes(nodes)
+        cells = as_cells(cells, len(nodes), nodes.shape[1])
+        if merge_coincident:
+            cells = merge_coincident_nodes(nodes, cells)
         if drop_unused:
             used = np.unique(cells)
             renumber = np.full(len(nodes), -1, dtype=np.int64)
@@ -331,7 +288,7 @@ class Mesh:
         if (counts > 2).any():
             bad = np.unique(owner[shared > 2])
             raise MeshError(
-                f"non-manifold mesh: some facets are shared by more than two cells, in {_first(bad, 'cells')}"
+                f"non-manifold mesh: some facets are shared by more than two cells, in {name_first(bad, 'cells')}"
             )
         on_boundary = shared == 1
         facets, opposite, owner = facets[on_boundary], opposite[on_boundary], owner[on_boundary]
@@ -411,63 +368,34 @@ class Mesh:
 
         1 for equilateral cells, towards 0 for slivers.
         """
-        return _quality(self._nodes, self._cells)
+        return simplex_quality(self._nodes, self._cells)
 
     # ----------------------------------------------------------------- I/O
     @classmethod
-    def read(cls, path, *, orient: bool = False) -> Mesh:
+    def read(cls, path, *, orient: bool = False, merge_coincident: bool = False) -> Mesh:
         """Read the top-dimensional simplices of any meshio-readable file.
 
         Lower-dimensional cells (boundary lines, points) are ignored and nodes they alone use
         are dropped; coordinate columns that are zero beyond the mesh dimension are dropped
         (a planar mesh stored with z = 0 becomes 2D). A file whose cells are all negatively
         oriented is flipped as a whole (a convention); ``orient=True`` flips every negative
-        cell, for files known to be untangled but inconsistently ordered.
+        cell, for files known to be untangled but inconsistently ordered. Coincident nodes
+        (a mesh exported without merging its seams) are an error unless ``merge_coincident``.
         """
-        import meshio
-
         path = Path(path)
-        if not path.is_file():
-            raise MeshError(f"mesh file {path} does not exist")
-        chatter = io.StringIO()
-        try:  # meshio prints to the console and may even sys.exit on files it cannot parse
-            with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
-                raw = meshio.read(path)
-        except (Exception, SystemExit) as exc:
-            detail = " ".join(chatter.getvalue().split()) or f"{type(exc).__name__}: {exc}"
-            raise MeshError(f"cannot read mesh file {path}: {detail}") from None
-        blocks = [(b.type, np.asarray(b.data)) for b in raw.cells if len(b.data)]
-        found = sorted({t for t, _ in blocks})
-        dims = [_MESHIO_DIM[t] for t, _ in blocks if t in _MESHIO_DIM]
-        if not dims:
-            raise MeshError(
-                f"mesh file {path} has no usable cells: found {found or 'no cells at all'}, but bsms "
-                "needs simplices (line, triangle or tetra); triangulate the mesh first"
-            )
-        dim = max(dims)
-        higher = [t for t in found if _NON_SIMPLEX_DIM.get(t, 0) >= dim]
-        if higher:
-            raise MeshError(
-                f"mesh file {path} mixes cell types: {found}; bsms reads one simplex type "
-                f"({SIMPLEX_TYPES[dim]} here) and cannot use {higher}: convert them to simplices"
-            )
-        cells = np.concatenate([data for t, data in blocks if _MESHIO_DIM.get(t) == dim])
-        points = np.asarray(raw.points, dtype=np.float64)
-        if points.shape[1] < dim:
-            raise MeshError(f"mesh file {path} has {points.shape[1]}D points but {SIMPLEX_TYPES[dim]} cells")
-        extra = points[:, dim:]
-        if extra.size and np.abs(extra).max() > 0:
-            raise MeshError(
-                f"mesh file {path} holds a {dim}D mesh ({SIMPLEX_TYPES[dim]} cells) embedded in "
-                f"{points.shape[1]}D with non-zero coordinates beyond axis {dim}; bsms needs it in "
-                f"its own {dim}D coordinates (e.g. z = 0 for a planar mesh)"
-            )
-        measures = signed_measures(points[:, :dim], cells) if len(cells) else np.zeros(0)
+        points, cells = _read_simplices(path)
+        dim = points.shape[1]
+        try:
+            cells = as_cells(cells, len(points), dim)
+        except MeshError as exc:
+            raise MeshError(f"mesh file {path}: {exc}") from None
+        measures = signed_measures(points, cells)
         if (measures < 0).all():
             cells = cells.copy()
             cells[:, -2:] = cells[:, [-1, -2]]
         try:
-            return cls.from_arrays(points[:, :dim], cells, drop_unused=True, orient=orient)
+            return cls.from_arrays(points, cells, drop_unused=True, orient=orient,
+                                   merge_coincident=merge_coincident)
         except MeshError as exc:
             raise MeshError(f"mesh file {path}: {exc}") from None
 
@@ -495,7 +423,3 @@ class Mesh:
         default = "gmsh" if path.suffix.lower() == ".msh" else None  # meshio would pick ANSYS first
         with atomic_path(path, suffix=path.suffix) as tmp:  # the suffix tells meshio the format
             meshio.write(tmp, out, file_format=file_format or default)
-
-
-# The extra layer lives in its own module; it is part of this module's public API.
-from datagen.layer import ExtendedMesh, with_extra_layer  # noqa: E402

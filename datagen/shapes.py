@@ -11,6 +11,7 @@ processes; gmsh's console output is silenced.
 from __future__ import annotations
 
 import math
+import signal
 import threading
 from collections.abc import Sequence
 from contextlib import contextmanager
@@ -40,6 +41,20 @@ _OPTIONS = {  # option -> value used for every mesh
 
 
 @contextmanager
+def _keep_signal_handlers():
+    """gmsh's initialize/finalize reset the process's SIGTERM action behind Python's back (a
+    trainer's save-on-SIGTERM would be lost): put Python's handlers back afterwards."""
+    main = threading.current_thread() is threading.main_thread()
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    try:
+        yield
+    finally:
+        for sig, handler in saved.items():
+            if handler is not None:
+                signal.signal(sig, handler)
+
+
+@contextmanager
 def _gmsh_session(name: str):
     """A fresh gmsh model with our options, cleaned up afterwards whatever happens."""
     import gmsh
@@ -47,7 +62,8 @@ def _gmsh_session(name: str):
     with _GMSH_LOCK:
         owner = not gmsh.isInitialized()
         if owner:  # no SIGINT handler, no user config files: safe in workers, reproducible
-            gmsh.initialize(readConfigFiles=False, interruptible=False)
+            with _keep_signal_handlers():
+                gmsh.initialize(readConfigFiles=False, interruptible=False)
         saved = {key: gmsh.option.getNumber(key) for key in _OPTIONS}
         for key, value in _OPTIONS.items():
             gmsh.option.setNumber(key, value)
@@ -61,7 +77,8 @@ def _gmsh_session(name: str):
         finally:
             gmsh.model.remove()
             if owner:
-                gmsh.finalize()
+                with _keep_signal_handlers():
+                    gmsh.finalize()
             else:
                 for key, value in saved.items():
                     gmsh.option.setNumber(key, value)

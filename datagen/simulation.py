@@ -8,7 +8,7 @@ A config is a dict or a YAML file path::
              reference: eulerian, epsilon: 0.01, fraction: 0.01, contact_margin: 1.0}
     output: {frames: 100, frame_interval: 0.1}
 
-solver.reference picks the A-ULMPM reference configuration (datagen.mpm.solver): ``eulerian``
+solver.reference picks the A-ULMPM reference configuration (datagen.mpm.reference): ``eulerian``
 recomputes kernels every step, ``total`` never, ``adaptive`` when the fraction of particles with
 |det F^{sn} - 1| >= epsilon reaches ``fraction`` or when two separate clusters of active nodes
 may have come within ``contact_margin`` cells of each other (null: no contact trigger).
@@ -27,24 +27,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .mesh import Mesh, with_extra_layer
+from .config import ConfigError, read_yaml, reject_unknown
+from .layer import ExtendedMesh, with_extra_layer
 from .mpm import linalg
 from .mpm.boundary import grid_conditions, mesh_conditions
+from .mpm.diagnostics import diagnostics
 from .mpm.kernels import Grid, MeshTables
-from .mpm.solver import (
-    KERNELS,
-    REFERENCES,
-    TRANSFERS,
-    Grip,
-    Model,
-    State,
-    WallPlane,
-    cfl_time_step,
-    diagnostics,
-    kirchhoff_stress,
-    step,
-)
-from .scenes import ConfigError, Scene, get_scene
+from .mpm.model import KERNELS, REFERENCES, TRANSFERS, Grip, Model, WallPlane
+from .mpm.state import State
+from .mpm.step import cfl_time_step, step
+from .mpm.stress import kirchhoff_stress
+from .scenes import Scene, get_scene
+from .trajectory import Trajectory
 
 __all__ = ["simulate", "Trajectory", "ConfigError", "resolve_config", "build_simulation", "Simulation"]
 
@@ -56,44 +50,6 @@ SOLVER_DEFAULTS = {
 }
 OUTPUT_DEFAULTS = {"frames": None, "frame_interval": None, "step_diagnostics": False}
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
-
-
-@dataclass
-class Trajectory:
-    """A simulated run, sampled at frames.
-
-    mesh: the body mesh (rest positions; its vertices are the tracked material points).
-    positions, velocities: (T, N, d) of the tracked points. times: (T,). diagnostics: name ->
-    (T, ...) per frame (mass, momentum, angular_momentum, kinetic/elastic/gravitational
-    energy, center_of_mass, probe_stress (T, n_probes, d, d) Cauchy stress, and probe_names).
-    step_diagnostics: the same per solver step when output.step_diagnostics is set, else None.
-    wall_time: seconds spent stepping the solver. config: the full resolved config.
-    frame_wall_times: (T,) solver seconds spent reaching each frame (0 for frame 0).
-    node_type: (N,) datagen.dataset.NodeType codes of the tracked points (None: all free).
-    body_id: (N,) body of each tracked point (None: one body). obstacle_nodes (M, d) and
-    obstacle_facets (F, d): wall/container geometry a model can see (None: none).
-    kernel_rebuilds: how many times kernels were computed: one per step in eulerian mode, one
-    per reference update (the first included) in total/adaptive mode. diagnostics also hold
-    kernel_rebuilds and contact_rebuilds (T,), cumulative counts at each frame.
-    """
-
-    mesh: Mesh
-    positions: np.ndarray
-    velocities: np.ndarray
-    times: np.ndarray
-    diagnostics: dict
-    wall_time: float
-    config: dict
-    dt: float
-    substeps: int
-    n_particles: int
-    step_diagnostics: dict | None = None
-    frame_wall_times: np.ndarray | None = None
-    node_type: np.ndarray | None = None
-    body_id: np.ndarray | None = None
-    obstacle_nodes: np.ndarray | None = None
-    obstacle_facets: np.ndarray | None = None
-    kernel_rebuilds: int | None = None
 
 
 @dataclass
@@ -111,13 +67,7 @@ class Simulation:
 # ----------------------------------------------------------------------------- config
 def _load(config) -> dict:
     if isinstance(config, (str, Path)):
-        import yaml
-
-        path = Path(config)
-        if not path.is_file():
-            raise ConfigError(f"config file {path} does not exist")
-        with open(path) as fh:
-            config = yaml.safe_load(fh)
+        return read_yaml(config, what="config file")
     if not isinstance(config, dict):
         kind = type(config).__name__
         raise ConfigError(f"a config must be a mapping (or a YAML file holding one), got {kind}")
@@ -128,10 +78,7 @@ def _section(config: dict, name: str, defaults: dict) -> dict:
     given = config.get(name) or {}
     if not isinstance(given, dict):
         raise ConfigError(f"config key '{name}' must be a mapping, got {given!r}")
-    unknown = sorted(set(given) - set(defaults))
-    if unknown:
-        known = ", ".join(sorted(defaults))
-        raise ConfigError(f"unknown config key '{name}.{unknown[0]}'; known keys: {known}")
+    reject_unknown(given, defaults, prefix=name, where=f"'{name}'")
     return {**defaults, **given}
 
 
@@ -182,9 +129,7 @@ def _check_solver(s: dict) -> None:
 def resolve_config(config) -> dict:
     """The full config: defaults filled in (scene defaults for params and output), all checked."""
     config = _load(config)
-    unknown = sorted(set(config) - TOP_LEVEL)
-    if unknown:
-        raise ConfigError(f"unknown config key '{unknown[0]}'; known keys: {', '.join(sorted(TOP_LEVEL))}")
+    reject_unknown(config, TOP_LEVEL)
     if "scene" not in config:
         raise ConfigError("config key 'scene' is missing; name a scene, e.g. scene: vibrating_bar")
     scene = get_scene(config["scene"])
@@ -203,8 +148,9 @@ def resolve_config(config) -> dict:
 
 
 # ----------------------------------------------------------------------------- model
-def _background(scene: Scene, solver: dict, device, dtype):
-    """(background, conditions, node positions, CFL length) for the chosen kernel."""
+def _background(scene: Scene, solver: dict, extended: ExtendedMesh | None, device, dtype):
+    """(background, conditions, node positions, CFL length) for the chosen kernel; extended: the
+    domain with its extra layer (mesh kernels with solver.extra_layer), else None."""
     domain = scene.domain
     if solver["kernel"] == "bspline":
         spacing = solver["grid_spacing"] or scene.grid_spacing or domain.edge_length_stats.mean
@@ -213,7 +159,6 @@ def _background(scene: Scene, solver: dict, device, dtype):
         conditions = grid_conditions(grid, lower, upper, scene.walls, scene.clamps,
                                      device=device, dtype=dtype)
         return grid, conditions, torch.tensor(grid.nodes(), dtype=dtype, device=device), spacing
-    extended = with_extra_layer(domain, solver["layer_thickness"]) if solver["extra_layer"] else None
     tables = MeshTables.build(extended if extended is not None else domain, device=device, dtype=dtype)
     conditions = mesh_conditions(domain, extended, scene.walls, scene.clamps, device=device, dtype=dtype)
     return tables, conditions, tables.nodes, domain.edge_length_stats.min
@@ -281,25 +226,28 @@ def wall_planes(scene: Scene, solver: dict, h: float, device, dtype) -> tuple[Wa
     return tuple(out)
 
 
-def _pinned(scene: Scene, solver: dict, background, device, dtype) -> tuple:
+def _pinned(scene: Scene, background, extended: ExtendedMesh | None, device, dtype) -> tuple:
     """The scene's clamps as index conditions (they hold nodes at rest, which then never move)."""
     if not scene.clamps:
         return ()
     if isinstance(background, Grid):
         lower, upper = scene.domain.nodes.min(0), scene.domain.nodes.max(0)
         return tuple(grid_conditions(background, lower, upper, [], scene.clamps, device=device, dtype=dtype))
-    extended = with_extra_layer(scene.domain, solver["layer_thickness"]) if solver["extra_layer"] else None
     return tuple(mesh_conditions(scene.domain, extended, [], scene.clamps, device=device, dtype=dtype))
 
 
-def build_model(scene: Scene, solver: dict) -> tuple[Model, State]:
+def build_solver_model(scene: Scene, solver: dict) -> tuple[Model, State]:
+    """The solver's :class:`Model` and initial :class:`State` of a built scene (``solver``: the
+    resolved solver section of a config). The extra layer, if any, is built once here."""
     device, dtype = torch.device(solver["device"]), _DTYPES[solver["dtype"]]
-    background, conditions, nodes, h_cfl = _background(scene, solver, device, dtype)
+    mesh_kernel = solver["kernel"] != "bspline" and solver["extra_layer"]
+    extended = with_extra_layer(scene.domain, solver["layer_thickness"]) if mesh_kernel else None
+    background, conditions, nodes, h_cfl = _background(scene, solver, extended, device, dtype)
     reference = {}
     if solver["reference"] != "eulerian":
         h = background.spacing if isinstance(background, Grid) else background.h
         reference = {"wall_planes": wall_planes(scene, solver, h, device, dtype),
-                     "pinned": _pinned(scene, solver, background, device, dtype)}
+                     "pinned": _pinned(scene, background, extended, device, dtype)}
     grips = tuple(Grip(torch.as_tensor(ids, dtype=torch.int64, device=device), velocity)
                   for ids, velocity in getattr(scene, "grips", ()))
     materials = tuple(
@@ -323,7 +271,7 @@ def build_simulation(config) -> Simulation:
     config = resolve_config(config)
     scene_module = get_scene(config["scene"])
     scene = scene_module.build(config["params"])
-    model, state = build_model(scene, config["solver"])
+    model, state = build_solver_model(scene, config["solver"])
     interval = config["output"]["frame_interval"]
     dt_max = config["solver"]["dt"] or cfl_time_step(model, state, config["solver"]["cfl"])
     substeps = max(1, math.ceil(interval / dt_max - 1e-9))

@@ -8,7 +8,8 @@ import sys
 
 import torch
 
-from bsms.trainer import Trainer, load_config
+from bsms.run import load_config
+from bsms.trainer import Trainer
 
 
 def main() -> None:

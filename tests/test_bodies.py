@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from datagen import shapes
+from datagen.config import ConfigError
 from datagen.dataset import load
+from datagen.dataset_config import load_dataset_config, trajectory_config
 from datagen.families import get_family, place
-from datagen.generate import generate, load_dataset_config, trajectory_config
-from datagen.scenes import ConfigError
+from datagen.generate import generate
 from datagen.simulation import build_simulation, resolve_config, simulate
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "datasets"
@@ -152,7 +153,7 @@ def test_bodies_missing_file_and_wrong_dimension_messages(mesh_files, tmp_path):
     ({"meshes": ["{disk}"], "sizes": [0.3, 0.2]}, r"^params.sizes must be null or list one entry per mesh \(1\)"),
     ({"meshes": ["{disk}"], "sizes": [-0.3]}, r"^params.sizes\[0\] must be a positive number or null"),
     ({"meshes": ["{disk}"], "box": [0.0, 0.0, 1.0]}, r"^params.box must be \[x0, y0, x1, y1\] \(2D\) or"),
-    ({"meshes": ["{disk}"], "sizes": [0.3], "radius": 1.0}, r"^unknown parameter params.radius for scene 'bodies'"),
+    ({"meshes": ["{disk}"], "sizes": [0.3], "radius": 1.0}, r"^unknown config key 'params.radius'; scene 'bodies' accepts: E, box, centers,"),
 ])
 def test_bodies_bad_params_name_the_key(mesh_files, params, message):
     params = {k: [m.format(**mesh_files) for m in v] if k == "meshes" else v for k, v in params.items()}

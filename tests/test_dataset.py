@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from datagen import simulate
-from datagen.dataset import FORMAT_VERSION, DatasetError, NodeType, content_digest, is_complete, load, save
+from datagen.dataset import FORMAT_VERSION, DatasetError, content_digest, is_complete, load, save
+from datagen.trajectory import NodeType
 
 CONFIG = {"scene": "vibrating_bar", "params": {"n_cells": 20}, "output": {"frames": 6}}
 
@@ -64,7 +65,7 @@ def test_bad_files_are_named(tmp_path, trajectory):
         load(truncated)
     assert not is_complete(truncated)
     (tmp_path / "junk.h5").write_text("not hdf5")
-    with pytest.raises(DatasetError, match=r"junk\.h5 is truncated or corrupt"):
+    with pytest.raises(DatasetError, match=r"junk\.h5 is not a trajectory file \(not HDF5 at all\)"):
         load(tmp_path / "junk.h5")
 
 

@@ -2,18 +2,27 @@
 
 import csv
 import json
+import math
+import re
 import subprocess
 import sys
 from pathlib import Path
 
+import meshio
 import numpy as np
 import pytest
+from PIL import Image
 
-from bsms.evaluate import SOLVER_SETTINGS, _interpolate_to, evaluate
-from bsms.trainer import load_config
+from bsms.data import NodeType, Scenario
+from bsms.evaluate import evaluate
+from bsms.rollout import rollout
+from bsms.run import load_config, load_model
+from bsms.solver_runs import SOLVER_SETTINGS, interpolate_to
+from datagen.dataset import load
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG, GIF = b"\x89PNG\r\n\x1a\n", b"GIF8"
+GROUND_TRUTH = SOLVER_SETTINGS["ground_truth"]
 
 
 @pytest.fixture(scope="module")
@@ -29,47 +38,115 @@ def quickstart_run(tiny_dataset, tmp_path_factory):
     result = subprocess.run([sys.executable, str(ROOT / "train.py"), "configs/quickstart.yaml", *overrides,
                              "--quiet"], capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert result.returncode == 0, result.stderr[-4000:]
-    return runs / "quickstart", result.stdout
+    details = json.loads((runs / "quickstart" / "evaluation" / "metrics.json").read_text())
+    return runs / "quickstart", result.stdout, details
 
 
-def test_quickstart_writes_the_report_and_every_chart(quickstart_run):
-    run, stdout = quickstart_run
-    assert "evaluated on 1 test trajectories: rollout RMSE" in stdout
+def independent_rollout(run: Path, trajectory_file: str, steps: int):
+    """(predicted body positions (T, N, d), per-step RMSE over the free body nodes) of the run's best model."""
+    model, config, _ = load_model(run)
+    trajectory = load(trajectory_file)
+    scenario = Scenario.from_trajectory(trajectory, config.graph)
+    known = scenario.full(trajectory.positions[: steps + 1])
+    result = rollout(model, scenario, known[0], scenario.full(trajectory.velocities[:1], 0.0)[0], steps, known)
+    predicted = result.positions[:, : scenario.n_body]
+    free = trajectory.node_type == NodeType.FREE
+    error = (predicted - trajectory.positions[: steps + 1])[:, free]
+    return predicted, np.sqrt(np.mean(np.sum(error**2, axis=-1), axis=-1))[1:]
+
+
+# the metric each column of the report's table must show (metrics.json row keys)
+TABLE = {
+    "method": "label", "kind": "kind", "RMSE@1 (m)": "rmse_1", "RMSE@50 (m)": "rmse_50", "RMSE all (m)": "rmse_all",
+    "± std": "rmse_all_std", "RMSE all / body size": "rel_all", "unstable rollouts": "unstable",
+    "first unstable step": "first_unstable_step", "s per frame": "seconds_per_step",
+    "s per simulated s": "seconds_per_sim_second", "speed-up vs solver": "speedup", "peak memory (MB)": "peak_memory_mb",
+}
+
+
+def table(report: str) -> tuple[list[str], list[list[str]]]:
+    """(titles, cells of each row) of the table under '## Metrics'."""
+    lines = [line for line in report.split("## Metrics")[1].split("##")[0].splitlines() if line.startswith("|")]
+    titles, *rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines]
+    return titles, rows[1:]  # without the separator
+
+
+def test_report_table_is_metrics_json(quickstart_run):
+    run, _, details = quickstart_run
+    titles, cells = table((run / "report.md").read_text())
+    assert titles == list(TABLE)
+    assert [row[0] for row in cells] == [row["label"] for row in details["rows"]]
+    for row_cells, row in zip(cells, details["rows"], strict=True):
+        for cell, title in zip(row_cells, titles, strict=True):
+            value = row.get(TABLE[title])
+            if value is None or (isinstance(value, float) and math.isnan(value)):
+                assert cell == "-", (row["label"], title)
+            elif isinstance(value, str):
+                assert cell == value
+            else:  # three significant digits
+                assert float(cell) == pytest.approx(value, rel=5e-3, abs=0), (row["label"], title)
+    with open(run / "evaluation" / "speed_accuracy.csv", newline="") as fh:
+        csv_rows = list(csv.DictReader(fh))
+    assert list(csv_rows[0]) == list(TABLE.values())
+    for csv_row, row in zip(csv_rows, details["rows"], strict=True):
+        assert float(csv_row["rmse_all"]) == row["rmse_all"] and csv_row["label"] == row["label"]
+
+
+def test_metrics_are_what_they_claim(quickstart_run):
+    run, stdout, details = quickstart_run
+    rows = {row["label"]: row for row in details["rows"]}
+    assert set(rows) == {"quickstart", *SOLVER_SETTINGS.values()}
+    truth = rows[GROUND_TRUTH]
+    assert truth["rmse_all"] == 0.0 and truth["max_difference_from_stored"] == 0.0, \
+        "the solver re-run at the data's settings must reproduce the stored trajectory bit for bit"
+    for label, row in rows.items():
+        assert row["speedup"] == pytest.approx(truth["seconds_per_sim_second"] / row["seconds_per_sim_second"],
+                                               rel=1e-15), label
+        if label not in ("quickstart", GROUND_TRUTH):  # every cheaper setting changes the result
+            assert 0 < row["rmse_all"] < math.inf, label
+    (learned,) = details["learned"]["quickstart"]
+    curve = np.array(learned["error_curve"])
+    assert len(curve) == 6 and learned["steps"] == 6
+    assert learned["rmse_all"] == pytest.approx(np.sqrt(np.mean(curve**2)), rel=1e-15)
+    assert learned["rmse_1"] == curve[0] and learned["rel_all"] == pytest.approx(
+        learned["rmse_all"] / learned["body_size"], rel=1e-15)
+    assert learned["seconds_per_sim_second"] == pytest.approx(learned["seconds_per_step"] / 0.05, rel=1e-15)
+    predicted, expected = independent_rollout(run, details["trajectories"][0], 6)
+    np.testing.assert_allclose(curve, expected, rtol=1e-6, atol=0)  # float32 network (measured: equal)
+    assert re.search(rf"rollout RMSE {rows['quickstart']['rmse_all']:.4g} m", stdout)
+    with meshio.xdmf.TimeSeriesReader(str(run / "evaluation" / "rollout_0.xdmf")) as reader:
+        reader.read_points_cells()
+        assert reader.num_steps == 7  # frame 0 and 6 predicted frames
+        _, point_data, _ = reader.read_data(6)
+    assert set(point_data) == {"position", "displacement", "error"}
+    truth_positions = load(details["trajectories"][0]).positions
+    np.testing.assert_allclose(point_data["error"], np.linalg.norm(predicted[6] - truth_positions[6], axis=-1),
+                               rtol=1e-6, atol=0)
+
+
+def test_report_links_every_picture(quickstart_run):
+    run, _, _ = quickstart_run
     report = (run / "report.md").read_text()
     for picture in ("speed_accuracy.png", "error_vs_step.png", "training_curve.png", "rollout_0.gif"):
         assert f"(evaluation/{picture})" in report
         data = (run / "evaluation" / picture).read_bytes()
-        assert data.startswith(GIF if picture.endswith(".gif") else PNG) and len(data) > 5000, picture
-    import meshio
-
-    with meshio.xdmf.TimeSeriesReader(str(run / "evaluation" / "rollout_0.xdmf")) as reader:
-        points, _ = reader.read_points_cells()
-        assert reader.num_steps == 7  # frame 0 and 6 predicted frames
-        _, point_data, _ = reader.read_data(6)
-    assert set(point_data) == {"position", "displacement", "error"} and point_data["error"].shape == (len(points),)
-    with open(run / "evaluation" / "speed_accuracy.csv", newline="") as fh:
-        rows = {row["label"]: row for row in csv.DictReader(fh)}
-    assert set(rows) == {"quickstart", *SOLVER_SETTINGS.values()}
-    assert float(rows[SOLVER_SETTINGS["reference"]]["rmse_all"]) == 0.0
-    for label, row in rows.items():
-        assert float(row["seconds_per_sim_second"]) > 0, label
-    details = json.loads((run / "evaluation" / "metrics.json").read_text())
-    reference = next(r for r in details["rows"] if r["label"] == SOLVER_SETTINGS["reference"])
-    assert reference["max_difference_from_stored"] == 0.0, "the solver re-run must reproduce the stored data"
-    learned = details["learned"]["quickstart"][0]
-    assert len(learned["error_curve"]) == 6 and learned["steps"] == 6
+        assert data.startswith(GIF if picture.endswith(".gif") else PNG), picture
+    with Image.open(run / "evaluation" / "rollout_0.gif") as gif:
+        assert gif.n_frames == 7 and gif.size[0] > 1.8 * gif.size[1], "solver and learned panels, every frame"
+    assert "reproduces the stored trajectories to 0 m" in report
 
 
 def test_evaluate_learned_only_with_fewer_steps(quickstart_run):
-    run, _ = quickstart_run
+    run, _, details = quickstart_run
+    six_steps = details["learned"]["quickstart"][0]["error_curve"]
     config = load_config(run / "config.yaml")
     options = config.evaluate
     options.solver, options.steps, options.gifs = [], 3, 0
     result = evaluate(run, options=options, progress=False)
     (row,) = result["rows"]
     assert row["label"] == "quickstart" and row["trajectories"] == 1
-    details = json.loads((run / "evaluation" / "metrics.json").read_text())
-    assert len(details["learned"]["quickstart"][0]["error_curve"]) == 3
+    three_steps = json.loads((run / "evaluation" / "metrics.json").read_text())["learned"]["quickstart"][0]
+    assert three_steps["error_curve"] == six_steps[:3], "a shorter rollout is the start of the longer one"
 
 
 def test_evaluate_cli_errors(tmp_path):
@@ -80,7 +157,18 @@ def test_evaluate_cli_errors(tmp_path):
                                      "python train.py CONFIG")
 
 
-def test_coarser_body_is_compared_at_the_reference_points():
+def test_unknown_solver_setting_names_the_key():
+    from bsms.config import ConfigError
+
+    with pytest.raises(ConfigError) as info:
+        load_config({"name": "x", "dataset": {"config": "d.yaml"}, "evaluate": {"solver": ["coarse", "large_step"]}})
+    assert str(info.value) == ("unknown config key 'evaluate.solver.coarse'; 'evaluate.solver' accepts: "
+                               "coarse_mesh, fewer_particles, ground_truth, large_step")
+    former = load_config({"name": "x", "dataset": {"config": "d.yaml"}, "evaluate": {"solver": ["reference"]}})
+    assert former.evaluate.solver == ["ground_truth"], "runs saved before the rename still load"
+
+
+def test_coarser_body_is_compared_at_the_ground_truth_nodes():
     """A displacement field that is linear per body is carried over exactly between meshes."""
     from datagen import shapes
 
@@ -92,8 +180,8 @@ def test_coarser_body_is_compared_at_the_reference_points():
 
     times = np.linspace(0, 1, 4)[:, None, None]
     other = np.stack([moved(coarse.nodes, t) for t in times[:, 0, 0]])
-    out = _interpolate_to(fine.nodes, np.zeros(fine.n_nodes, int), coarse.nodes, np.zeros(coarse.n_nodes, int),
-                          other)
+    out = interpolate_to(fine.nodes, np.zeros(fine.n_nodes, int), coarse.nodes, np.zeros(coarse.n_nodes, int),
+                         other)
     inside = np.linalg.norm(fine.nodes, axis=1) < 0.45  # the coarse polygon covers these
     expected = np.stack([moved(fine.nodes, t) for t in times[:, 0, 0]])
-    np.testing.assert_allclose(out[:, inside], expected[:, inside], atol=1e-12)
+    np.testing.assert_allclose(out[:, inside], expected[:, inside], rtol=0, atol=1e-15)

@@ -5,11 +5,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datagen.dataset import NodeType
+from datagen.config import ConfigError
+from datagen.dataset_config import load_dataset_config, trajectory_config
 from datagen.families import FAMILIES, get_family
-from datagen.generate import load_dataset_config, trajectory_config
-from datagen.scenes import ConfigError
 from datagen.simulation import simulate
+from datagen.trajectory import NodeType
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "datasets"
 
@@ -93,7 +93,7 @@ def test_glyph_test_letters_are_never_in_training():
 
 @pytest.mark.parametrize(("ranges", "message"), [
     ({"radius": [0.3, 0.1]}, r"ranges.radius must be a number or \[low, high\] with low <= high"),
-    ({"radious": [0.1, 0.2]}, "unknown key ranges.radious for family 'disks'"),
+    ({"radious": [0.1, 0.2]}, "unknown config key 'ranges.radious'; family 'disks' accepts: E, box, count,"),
     ({"radius": [0.45, 0.5]}, "ranges.radius: could not place"),
     ({"E": [-1.0, 2.0]}, "ranges.E must be positive"),
 ])

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import yaml
 
+from datagen.config import ConfigError
 from datagen.dataset import content_digest, load
-from datagen.generate import generate, jobs, load_dataset_config, main, parse_shard
-from datagen.scenes import ConfigError
+from datagen.dataset_config import load_dataset_config
+from datagen.generate import generate, jobs, main, parse_shard
 
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = ROOT / "configs" / "datasets" / "disks_quick.yaml"
@@ -106,9 +107,9 @@ def test_bad_shard_spec(text, message):
     ({"family": "disk"}, "unknown family 'disk'"),
     ({"splits": {"training": 3}}, "'splits' must map some of train, valid, test"),
     ({"splits": {"train": -1}}, "'splits.train' must be a count >= 0"),
-    ({"colour": 1}, "unknown dataset config key 'colour'"),
+    ({"colour": 1}, "unknown config key 'colour'; a dataset config accepts: dataset, family, output, params, ranges, seed, solver, splits"),
     ({"ranges": {"radius": [0.3, 0.1]}}, "ranges.radius must be a number or [low, high]"),
-    ({"params": {"mesh_sise": 0.1}}, "unknown parameter params.mesh_sise"),
+    ({"params": {"mesh_sise": 0.1}}, "unknown config key 'params.mesh_sise'; scene 'disks' accepts: "),
 ])
 def test_cli_reports_config_errors_without_traceback(tmp_path, capsys, over):
     over, message = over

@@ -266,7 +266,7 @@ def test_save_and_load_round_trip(tmp_path):
     assert loaded.key == hierarchy.key and loaded.node_counts == hierarchy.node_counts
     for name, array in hierarchy.to_arrays().items():
         assert np.array_equal(loaded.to_arrays()[name], array), name
-    assert np.allclose(loaded.levels[1].down.apply(np.ones(hierarchy.levels[0].n_nodes)), 1.0)
+    np.testing.assert_allclose(loaded.levels[1].down.apply(np.ones(hierarchy.levels[0].n_nodes)), 1.0, rtol=2e-15)
 
 
 def test_cache_reuses_the_file_and_separates_options(tmp_path, monkeypatch):

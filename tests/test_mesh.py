@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from datagen import shapes
-from datagen.mesh import Mesh, MeshError, with_extra_layer
+from datagen.layer import with_extra_layer
+from datagen.mesh import Mesh, MeshError
 
 # Unit cube split into the six Kuhn tetrahedra around the main diagonal 0-7.
 CUBE_NODES = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=float)

@@ -1,10 +1,17 @@
 """simulate(config): config checking, the vibrating bar against UMLS eq. 34, APIC conservation."""
 
+import dataclasses
+import warnings
+
 import numpy as np
 import pytest
+import torch
 import yaml
 
 import datagen
+from datagen import shapes
+from datagen.layer import with_extra_layer
+from datagen.mpm.boundary import Mirror, Slip, Wall, apply_conditions, fold_mirrors, mesh_conditions
 from datagen.scenes import ConfigError, vibrating_bar
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -49,7 +56,8 @@ def test_yaml_config_and_trajectory_contents(tmp_path):
     for name in ("mass", "momentum", "angular_momentum", "kinetic_energy", "elastic_energy",
                  "gravitational_energy", "center_of_mass", "probe_stress"):
         assert name in traj.diagnostics
-    assert traj.wall_time > 0
+    assert traj.frame_wall_times.shape == (5,) and traj.frame_wall_times[0] == 0.0
+    assert traj.wall_time == pytest.approx(traj.frame_wall_times.sum(), rel=1e-12)
 
 
 # ----------------------------------------------------------------------------- vibrating bar (item 4)
@@ -61,23 +69,19 @@ def _stress_noise(t: np.ndarray, stress: np.ndarray, omega: float) -> float:
 
 
 def test_vibrating_bar_defaults_reproduce_the_closed_form():
-    """UMLS §3.1 with nothing but the scene name: one period, 80 cells, RMSE < 1% of amplitude."""
+    """UMLS §3.1 (UMLS eq. 34) with nothing but the scene name: one period, 80 cells; the centre of mass's
+    RMSE is 0.027% of its amplitude (the paper asks < 1%)."""
     traj = datagen.simulate({"scene": "vibrating_bar"})
     p = traj.config["params"]
     assert p["n_cells"] == 80 and traj.times[-1] >= 2 * np.pi / vibrating_bar.omega(p) - 1e-9
     cm = traj.diagnostics["center_of_mass"][:, 0]
     rmse = np.sqrt(np.mean((cm - vibrating_bar.center_of_mass(p, traj.times)) ** 2))
-    assert rmse < 0.01 * vibrating_bar.amplitude(p)
+    assert rmse < 0.002 * vibrating_bar.amplitude(p)
 
 
 def test_layer_nodes_between_opposite_walls_get_a_unit_normal():
     """A 2D strip two cells high: layer nodes beyond the free end touch both slip walls, whose
     normals cancel; they take their nearest wall neighbour's normal (was 0/0 = NaN)."""
-    import warnings
-
-    from datagen.mesh import with_extra_layer
-    from datagen.mpm.boundary import Slip, mesh_conditions
-
     scene = vibrating_bar.build(vibrating_bar.params({"dim": 2, "n_cells": 40}))  # dx 0.625, height 1
     extended = with_extra_layer(scene.domain)
     with warnings.catch_warnings():
@@ -92,13 +96,6 @@ def test_layer_nodes_between_opposite_walls_get_a_unit_normal():
 @pytest.mark.parametrize("dim", [1, 2])
 def test_sticky_wall_mirrors_the_extra_layer(dim):
     """Layer nodes beyond the bar's fixed end get minus the velocity at their reflection across x = 0."""
-    import dataclasses
-
-    import torch
-
-    from datagen.mesh import with_extra_layer
-    from datagen.mpm.boundary import Mirror, mesh_conditions
-
     scene = vibrating_bar.build(vibrating_bar.params({"dim": dim}))
     extended = with_extra_layer(scene.domain)
     nodes = extended.mesh.nodes
@@ -120,12 +117,6 @@ def test_sticky_wall_mirrors_the_extra_layer(dim):
 def test_folded_mirror_is_the_transpose_of_the_ghost_velocities(dim):
     """fold_mirrors moves the ghosts' odd node sums (momentum, force) onto their sources so that the
     power sum_i f_i v_i of a constrained velocity field is the same before and after the fold."""
-    import torch
-
-    from datagen import shapes
-    from datagen.mesh import with_extra_layer
-    from datagen.mpm.boundary import Mirror, Wall, apply_conditions, fold_mirrors, mesh_conditions
-
     if dim < 3:
         scene = vibrating_bar.build(vibrating_bar.params({"dim": dim, "n_cells": 20}))
         domain, walls = scene.domain, [w for w in scene.walls if w.kind == "sticky"]
@@ -170,8 +161,8 @@ def test_vibrating_bar_converges_at_second_order():
     assert np.polyfit(_LOG_DX, np.log(overwritten), 1)[0] < 1.4
 
 
-def test_structured_reference_clamps_with_folded_mirror_ghosts():
-    """The B-spline grid mirrors and folds the nodes beyond a sticky face too: the bar's error falls
+def test_bspline_grid_solver_clamps_with_folded_mirror_ghosts():
+    """The structured B-spline solver's grid mirrors and folds the nodes beyond a sticky face too: the bar's error falls
     as dx^1.75 (measured 0.73/0.19/0.061%); holding them at rest is first order (3.6/1.6/0.75%)."""
     folded = [_bar_rmse(n, "fold", "bspline") for n in (12, 25, 50)]
     assert np.polyfit(_LOG_DX, np.log(folded), 1)[0] > 1.6 and folded[-1] < 1e-3
@@ -180,9 +171,8 @@ def test_structured_reference_clamps_with_folded_mirror_ghosts():
 
 
 def test_vibrating_bar_2d_strip_reproduces_the_closed_form():
-    """The 2D strip (slip walls, nu = 0) at 80 cells: RMSE < 1% of amplitude (measured 0.98%, 1.56% before
-    the sticky wall mirrored its extra-layer nodes; what remains is mostly the unstructured triangulation:
-    a -0.3% frequency and -0.5% amplitude error, against -0.09% and +0.11% for the 1D bar)."""
+    """The 2D strip (slip walls, nu = 0) at 80 cells: RMSE < 1% of amplitude (measured 0.57% with the sticky
+    wall's mirror ghosts folded; 0.98% unfolded, 1.56% with the layer nodes held at rest)."""
     traj = datagen.simulate({"scene": "vibrating_bar", "params": {"dim": 2}})
     p = traj.config["params"]
     cm = traj.diagnostics["center_of_mass"][:, 0]
@@ -198,7 +188,7 @@ def test_linear_kernel_shows_cell_crossing_stress_noise():
                                  "output": {"frames": 200, "frame_interval": 0.025}})
         stress = traj.diagnostics["probe_stress"][:, 0, 0, 0]
         noise[kernel] = _stress_noise(traj.times, stress, vibrating_bar.omega(traj.config["params"]))
-    assert noise["linear"] >= 5 * noise["umls"]
+    assert noise["linear"] >= 15 * noise["umls"]  # measured 33x
 
 
 # ----------------------------------------------------------------------------- rotating square (item 5)
@@ -212,7 +202,7 @@ def test_apic_rotating_square_conserves_momenta_over_5000_steps():
     assert traj.substeps == 10 and len(steps["momentum"]) - 1 == 500
     p = traj.config["params"]
     scale = float(traj.diagnostics["mass"][0]) * p["speed"]
-    assert np.abs(steps["momentum"]).max() < 1e-12 * scale
+    assert np.abs(steps["momentum"]).max() < 1.5e-14 * scale  # measured 1.6e-15
     L0 = float(traj.diagnostics["angular_momentum"][0])
-    assert abs(L0) > 0.1 * scale * p["side"] / 2  # it really spins
-    assert np.abs(steps["angular_momentum"] - L0).max() < 1e-6 * abs(L0)
+    assert abs(L0) > 0.4 * scale * p["side"] / 2  # it really spins (measured 0.5)
+    assert np.abs(steps["angular_momentum"] - L0).max() < 8e-14 * abs(L0)  # measured 8.2e-15

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from datagen import shapes
-from datagen.mesh import Mesh, with_extra_layer
+from datagen.layer import with_extra_layer
+from datagen.mesh import Mesh
 
 
 def holes(mesh: Mesh) -> int:

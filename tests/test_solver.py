@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 import torch
 
-from datagen import shapes
-from datagen.mesh import with_extra_layer
-from datagen.mpm import linalg
+from datagen import shapes, simulate
+from datagen.layer import with_extra_layer
+from datagen.mpm import Model, SimulationError, State, cfl_time_step, diagnostics, linalg, step
 from datagen.mpm.boundary import SeparatingSlip, Slip, Sticky
 from datagen.mpm.kernels import Grid, MeshTables
 from datagen.mpm.materials import FixedCorotated, LinearElastic, NeoHookean, rotation_part
-from datagen.mpm.solver import Model, SimulationError, State, cfl_time_step, diagnostics, step
+from datagen.scenes import ConfigError
 from datagen.scenes.base import lattice
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -22,6 +22,11 @@ def _random_F(n: int, d: int, seed: int = 0) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------- materials
+# Stresses of size ~100 Pa: (P - dpsi/dF, tau - P F^T) measured up to 7.1e-15, 0 (linear elastic),
+# 5.7e-14, 1.8e-14 (Neo-Hookean), 1.4e-14, 1.4e-14 (fixed-corotated); bounds 10x that.
+STRESS_TOL = {LinearElastic: (7e-14, 1e-14), NeoHookean: (5e-13, 1.5e-13), FixedCorotated: (1.4e-13, 1.4e-13)}
+
+
 @pytest.mark.parametrize("material", [LinearElastic(100.0, 0.3, 1.0), NeoHookean(100.0, 0.3, 1.0),
                                       FixedCorotated(100.0, 0.3, 1.0)])
 @pytest.mark.parametrize("d", [1, 2, 3])
@@ -29,13 +34,15 @@ def test_stress_is_the_energy_gradient(material, d):
     F = _random_F(16, d).requires_grad_(True)
     psi = material.energy_density(F)
     (dpsi,) = torch.autograd.grad(psi.sum(), F)
+    gradient_tol, kirchhoff_tol = STRESS_TOL[type(material)]
     with torch.no_grad():
-        np.testing.assert_allclose(material.first_piola(F).numpy(), dpsi.numpy(), atol=1e-9)
+        np.testing.assert_allclose(material.first_piola(F).numpy(), dpsi.numpy(), rtol=0, atol=gradient_tol)
         tau = material.kirchhoff(F)
-        np.testing.assert_allclose(tau.numpy(), (material.first_piola(F) @ F.transpose(1, 2)).numpy(), atol=1e-9)
+        np.testing.assert_allclose(tau.numpy(), (material.first_piola(F) @ F.transpose(1, 2)).numpy(), rtol=0,
+                                   atol=kirchhoff_tol)
         rest = torch.eye(d, dtype=torch.float64).expand(3, d, d)
-        assert float(material.kirchhoff(rest).abs().max()) < 1e-14
-        assert float(material.energy_density(rest).abs().max()) < 1e-14
+        assert float(material.kirchhoff(rest).abs().max()) == 0.0
+        assert float(material.energy_density(rest).abs().max()) == 0.0
 
 
 @pytest.mark.parametrize("material", [NeoHookean(100.0, 0.3, 1.0), FixedCorotated(100.0, 0.3, 1.0)])
@@ -43,28 +50,36 @@ def test_stress_is_the_energy_gradient(material, d):
 def test_hyperelastic_stress_is_objective_and_symmetric(material, d):
     F = _random_F(16, d, seed=1)
     R = rotation_part(_random_F(16, d, seed=2))
-    tau = material.kirchhoff(F)
-    np.testing.assert_allclose((R @ tau @ R.transpose(1, 2)).numpy(), material.kirchhoff(R @ F).numpy(), atol=1e-10)
-    np.testing.assert_allclose(tau.numpy(), tau.transpose(1, 2).numpy(), atol=1e-12)
-    np.testing.assert_allclose(material.energy_density(R @ F).numpy(), material.energy_density(F).numpy(), atol=1e-10)
+    tau = material.kirchhoff(F)  # ~70 Pa: measured errors up to 5.7e-14, 2.0e-14 and 3.6e-14
+    np.testing.assert_allclose((R @ tau @ R.transpose(1, 2)).numpy(), material.kirchhoff(R @ F).numpy(), rtol=0,
+                               atol=5e-13)
+    np.testing.assert_allclose(tau.numpy(), tau.transpose(1, 2).numpy(), rtol=0, atol=2e-13)
+    np.testing.assert_allclose(material.energy_density(R @ F).numpy(), material.energy_density(F).numpy(), rtol=0,
+                               atol=3e-13)
 
 
 @pytest.mark.parametrize("d", [2, 3])
 def test_polar_rotation_is_orthogonal_and_leaves_a_symmetric_stretch(d):
     F = _random_F(64, d, seed=3)
     R = rotation_part(F)
-    eye = torch.eye(d, dtype=torch.float64)
-    assert float((R.transpose(1, 2) @ R - eye).abs().max()) < 1e-12
-    assert float((linalg.det(R) - 1).abs().max()) < 1e-12
+    eye = torch.eye(d, dtype=torch.float64)  # measured errors up to 3.3e-16, 2.2e-16, 4.4e-16
+    assert float((R.transpose(1, 2) @ R - eye).abs().max()) < 3e-15
+    assert float((linalg.det(R) - 1).abs().max()) < 2e-15
     S = R.transpose(1, 2) @ F
-    assert float((S - S.transpose(1, 2)).abs().max()) < 1e-12
+    assert float((S - S.transpose(1, 2)).abs().max()) < 4e-15
 
 
 def test_small_matrix_closed_forms_match_torch():
-    for d in (1, 2, 3):
+    for d in (1, 2, 3):  # measured: relative determinant error 2.8e-16, inverse error 4.4e-16 (entries ~3)
         A = _random_F(50, d, seed=d)
-        np.testing.assert_allclose(linalg.det(A).numpy(), torch.linalg.det(A).numpy(), rtol=1e-12)
-        np.testing.assert_allclose(linalg.inv(A).numpy(), torch.linalg.inv(A).numpy(), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(linalg.det(A).numpy(), torch.linalg.det(A).numpy(), rtol=2e-15)
+        np.testing.assert_allclose(linalg.inv(A).numpy(), torch.linalg.inv(A).numpy(), rtol=0, atol=4e-15)
+        by_component = linalg.components(A.clone())
+        np.testing.assert_allclose(linalg.component_det(by_component).numpy(), torch.linalg.det(A).numpy(), rtol=2e-15)
+        np.testing.assert_allclose(linalg.matrices(linalg.component_inv(by_component)).numpy(),
+                                   torch.linalg.inv(A).numpy(), rtol=0, atol=4e-15)
+        np.testing.assert_allclose(linalg.matrices(linalg.component_mm(by_component, by_component)).numpy(),
+                                   (A @ A).numpy(), rtol=0, atol=4e-15)
 
 
 # ----------------------------------------------------------------------------- boundary conditions
@@ -120,11 +135,12 @@ def _advance(model, state, steps: int):
 
 
 def test_three_dimensional_apic_conserves_both_momenta():
+    """Relative drifts over 10 steps measured 8.6e-17 (linear) and 3.5e-16 (angular)."""
     start, end, state, _ = _advance(*_block_model_3d("apic"), 10)
     scale = float(start["mass"]) * float(state.v.norm(dim=1).max())
-    assert float((end["momentum"] - start["momentum"]).abs().max()) < 1e-12 * scale
+    assert float((end["momentum"] - start["momentum"]).abs().max()) < 8e-16 * scale
     drift = (end["angular_momentum"] - start["angular_momentum"]).norm()
-    assert float(drift) < 1e-10 * float(start["angular_momentum"].norm())
+    assert float(drift) < 3e-15 * float(start["angular_momentum"].norm())
 
 
 @pytest.mark.parametrize(
@@ -133,9 +149,10 @@ def test_three_dimensional_apic_conserves_both_momenta():
      if (k, t) != ("linear", "apic")],  # rejected by the config: see test_linear_apic_is_rejected
 )
 def test_linear_momentum_is_conserved_without_walls(kernel, transfer):
+    """Relative drift over 20 steps: measured at most 1.8e-16 (often exactly 0)."""
     start, end, state, dt = _advance(*_block_model(kernel, transfer), 20)
     scale = float(start["mass"]) * float(state.v.norm(dim=1).max())
-    assert float((end["momentum"] - start["momentum"]).abs().max()) < 1e-12 * scale
+    assert float((end["momentum"] - start["momentum"]).abs().max()) < 1.5e-15 * scale
     assert float(end["mass"]) == float(start["mass"])
     assert state.step == 20 and state.time == pytest.approx(20 * dt)
 
@@ -148,11 +165,12 @@ def test_free_fall_follows_gravity_exactly():
     x0 = state.x.clone()
     for _ in range(30):
         state = step(model, state, dt)
-    t = 30 * dt
-    np.testing.assert_allclose(state.v.numpy(), np.tile(g, (len(x0), 1)) * t, atol=1e-12)
+    t = 30 * dt  # measured errors: 1.1e-16 (v), 4.7e-16 (x), 8.5e-18 (F)
+    np.testing.assert_allclose(state.v.numpy(), np.tile(g, (len(x0), 1)) * t, rtol=0, atol=1e-15)
     # symplectic Euler: x_n = x_0 + g dt^2 n (n + 1) / 2
-    np.testing.assert_allclose((state.x - x0).numpy(), np.tile(g, (len(x0), 1)) * dt**2 * 30 * 31 / 2, atol=1e-12)
-    assert float((state.F - torch.eye(2, dtype=torch.float64)).abs().max()) < 1e-12
+    np.testing.assert_allclose((state.x - x0).numpy(), np.tile(g, (len(x0), 1)) * dt**2 * 30 * 31 / 2, rtol=0,
+                               atol=4e-15)
+    assert float((state.F - torch.eye(2, dtype=torch.float64)).abs().max()) < 8e-17
 
 
 def test_apic_conserves_angular_momentum_over_a_few_steps():
@@ -161,7 +179,8 @@ def test_apic_conserves_angular_momentum_over_a_few_steps():
     L0 = diagnostics(model, state)["angular_momentum"]
     for _ in range(30):
         state = step(model, state, dt)
-    assert abs(float(diagnostics(model, state)["angular_momentum"] - L0)) < 1e-12 * abs(float(L0))
+    # measured relative drift 1.6e-16
+    assert abs(float(diagnostics(model, state)["angular_momentum"] - L0)) < 1.5e-15 * abs(float(L0))
 
 
 def test_particles_leaving_the_mesh_stop_the_run_with_advice():
@@ -184,8 +203,5 @@ def test_a_non_finite_state_stops_the_run():
 
 
 def test_linear_apic_is_rejected():
-    from datagen import simulate
-    from datagen.scenes import ConfigError
-
     with pytest.raises(ConfigError, match="cannot be 'apic' with kernel 'linear'"):
         simulate({"scene": "vibrating_bar", "solver": {"kernel": "linear", "transfer": "apic"}})

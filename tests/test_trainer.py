@@ -12,10 +12,12 @@ import yaml
 from conftest import tiny_run_config
 from torch_geometric.data import Batch
 
-from bsms.checkpoint import CheckpointError, load_checkpoint, load_model
+from bsms.checkpoint import CheckpointError, load_checkpoint
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
-from bsms.trainer import Trainer, build_model, load_config, lr_factor, prepare_dataset, split_files
+from bsms.models.simulator import LearnedSimulator
+from bsms.run import build_model, load_config, load_model, prepare_dataset, split_files
+from bsms.trainer import Trainer, lr_factor
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -38,9 +40,10 @@ def test_samples_integrate_to_the_next_frame(folder):
     graph = dataset[len(dataset) - 1]
     positions = dataset.positions[k]
     dt = dataset.scenarios[k].frame_dt
-    np.testing.assert_allclose(graph.velocity.numpy(), (positions[t] - positions[t - 1]) / dt, rtol=1e-5, atol=1e-5)
+    # graphs hold float32: a few float32 ulps of velocities and positions of order 1
+    np.testing.assert_allclose(graph.velocity.numpy(), (positions[t] - positions[t - 1]) / dt, rtol=0, atol=1e-7)
     nxt = graph.pos.double() + dt * (graph.velocity.double() + graph.target.double())
-    np.testing.assert_allclose(nxt.numpy(), positions[t + 1], atol=1e-6)
+    np.testing.assert_allclose(nxt.numpy(), positions[t + 1], atol=2e-7)
     assert len(dataset) == sum(len(p) - 1 for p in dataset.positions)
 
 
@@ -58,46 +61,53 @@ def test_noise_is_corrected_in_the_target(folder, gamma):
     true_next_velocity = clean.velocity + clean.target
     if gamma == 1.0:  # the target brings the noisy position back to the true next position
         torch.testing.assert_close(noisy.pos + dt * (noisy.velocity + noisy.target),
-                                   clean.pos + dt * true_next_velocity, atol=1e-5, rtol=0)
+                                   clean.pos + dt * true_next_velocity, atol=3e-7, rtol=0)
     else:  # the target restores the true next velocity
-        torch.testing.assert_close(noisy.velocity + noisy.target, true_next_velocity, atol=1e-4, rtol=0)
+        torch.testing.assert_close(noisy.velocity + noisy.target, true_next_velocity, atol=3e-7, rtol=0)
+
+
+def resting_on_the_floor(dataset: FrameDataset, k: int):
+    """The last frame of trajectory ``k`` with its letters moved down to rest on the floor y = 0."""
+    scenario, positions, velocities = dataset.scenarios[k], dataset.positions[k], dataset.velocities[k]
+    body = scenario.node_type != NodeType.OBSTACLE
+    assert not body.all() and (scenario.body_id[~body] == scenario.body_id.max()).all()
+    pos = positions[-1].copy()
+    pos[body, 1] -= pos[body, 1].min() - 0.2 * scenario.contact_radius
+    return scenario, scenario.graph(pos, velocities[-1])
 
 
 def test_obstacles_and_contacts_batch_like_each_alone(folder):
     dataset = FrameDataset(split_files(folder, "train"), GraphOptions(levels=3))
-    scenario, positions, velocities = dataset.scenarios[0], dataset.positions[0], dataset.velocities[0]
-    body = scenario.node_type != NodeType.OBSTACLE
-    assert not body.all() and (scenario.body_id[~body] == scenario.body_id.max()).all()
-    pos = positions[-1].copy()
-    pos[body, 1] -= pos[body, 1].min() - 0.2 * scenario.contact_radius  # the letters rest on the floor y = 0
-    graphs = [scenario.graph(pos, velocities[-1]), dataset[len(dataset) - 1]]
-    contacts = graphs[0].contact_index_0
-    assert contacts.shape[1] > 0, "letters resting on the floor must touch the wall nodes"
-    assert (scenario.body_id[contacts[0]] != scenario.body_id[contacts[1]]).all(), "no self-contact by default"
-    for l in range(1, 3):
-        assert graphs[0][f"contact_index_{l}"].shape[1] > 0, "contacts are carried to every level"
-    from bsms.models.simulator import LearnedSimulator
-
+    graphs = []
+    for k in range(2):
+        scenario, graph = resting_on_the_floor(dataset, k)
+        contacts = graph.contact_index_0
+        assert (scenario.body_id[contacts[0]] != scenario.body_id[contacts[1]]).all(), "no self-contact by default"
+        for l in range(3):
+            assert graph[f"contact_index_{l}"].shape[1] >= 4, "letters on the floor touch the walls on every level"
+        graphs.append(graph)
+    assert graphs[0].num_nodes != graphs[1].num_nodes, "the batch must join graphs of different sizes"
     torch.manual_seed(0)
     model = LearnedSimulator("bsms_gnn", 2, n_levels=3, contact=True, latent=16)
-    model.loss(graphs[1], accumulate=True)
+    model.loss(dataset[len(dataset) - 1], accumulate=True)  # normalisers that are not the identity
     model.eval()
     with torch.no_grad():
         alone = torch.cat([model(g) for g in graphs])
         together = model(Batch.from_data_list(graphs))
-    torch.testing.assert_close(together, alone, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(together, alone, rtol=0, atol=1e-6)  # float32 matmuls of other shapes
 
 
 # ----------------------------------------------------------------------------- training
 def test_lr_schedule():
     assert lr_factor(0, 4, 20, 0.1) == 0.25 and lr_factor(3, 4, 20, 0.1) == 1.0
-    assert lr_factor(4, 4, 20, 0.1) == pytest.approx(1.0)
-    assert lr_factor(12, 4, 20, 0.1) == pytest.approx(0.55)
-    assert lr_factor(20, 4, 20, 0.1) == pytest.approx(0.1)
+    assert lr_factor(4, 4, 20, 0.1) == pytest.approx(1.0, rel=1e-15)
+    assert lr_factor(12, 4, 20, 0.1) == pytest.approx(0.55, rel=1e-15)
+    assert lr_factor(20, 4, 20, 0.1) == pytest.approx(0.1, rel=1e-15)
 
 
-@pytest.mark.parametrize("model", ["bsms_gnn", "meshgraphnets"])
-def test_overfits_a_tiny_dataset(tiny_dataset, folder, tmp_path, model, one_thread):
+# measured final/first loss: 0.0045 (bsms_gnn), 0.037 (meshgraphnets)
+@pytest.mark.parametrize(("model", "ratio"), [("bsms_gnn", 0.04), ("meshgraphnets", 0.1)])
+def test_overfits_a_tiny_dataset(tiny_dataset, folder, tmp_path, model, ratio, one_thread):
     config = load_config(config_dict(
         tiny_dataset, tmp_path, noise={"position": 0.0, "velocity": 0.0},
         model={"name": model, "passes": 4}, optim={"lr": 2e-3, "warmup": 10},
@@ -111,7 +121,7 @@ def test_overfits_a_tiny_dataset(tiny_dataset, folder, tmp_path, model, one_thre
     trainer.model.eval()
     with torch.no_grad():
         final = float(trainer.model.loss(whole))
-    assert final < first / 10, f"one-step loss fell from {first:.3g} to {final:.3g} only"
+    assert final < ratio * first, f"one-step loss fell from {first:.3g} to {final:.3g} only"
     metrics = (tmp_path / "tiny" / "metrics.csv").read_text().splitlines()
     assert metrics[0] == "step,loss,lr,seconds,samples_per_s,valid_rmse"
     assert [int(line.split(",")[0]) for line in metrics[1:]] == list(range(10, 251, 10))
@@ -152,11 +162,12 @@ def test_two_processes_make_the_update_of_one(tiny_dataset, folder, tmp_path):
         assert result.returncode == 0, result.stderr[-3000:]
     one, two = torch.load(outputs["one"]), torch.load(outputs["two"])
     for name, value in one.items():
-        torch.testing.assert_close(two[name], value, rtol=1e-5, atol=1e-6, msg=lambda m, name=name: f"{name}: {m}")
+        # float32 sums in another order (measured: 1.4e-7)
+        torch.testing.assert_close(two[name], value, rtol=1e-5, atol=5e-7, msg=lambda m, name=name: f"{name}: {m}")
     torch.manual_seed(0)
     initial = build_model(load_config(data), 2).state_dict()
     moved = max(float((one[name] - initial[name]).abs().max()) for name in initial if "normalizer" not in name)
-    assert moved > 1e-4, "the steps must have changed the weights for the comparison to mean anything"
+    assert moved > 5e-4, "the steps must have changed the weights for the comparison to mean anything"  # 2e-3
     assert one["node_normalizer.count"] > 0 and torch.equal(one["node_normalizer.count"], two["node_normalizer.count"])
 
 
@@ -171,9 +182,8 @@ def test_checkpoint_reproduces_predictions_in_a_fresh_process(tiny_dataset, fold
     torch.save(here, tmp_path / "here.pt")
     script = (
         "import sys, torch\n"
-        "from bsms.checkpoint import load_model\n"
         "from bsms.data import FrameDataset\n"
-        "from bsms.trainer import split_files\n"
+        "from bsms.run import load_model, split_files\n"
         "model, config, _ = load_model(sys.argv[1])\n"
         "graph = FrameDataset(split_files(sys.argv[2], 'valid'), config.graph)[2]\n"
         "assert torch.equal(model.velocity_change(graph), torch.load(sys.argv[3])), 'predictions differ'\n"
@@ -253,7 +263,7 @@ def test_train_py_reports_config_errors(tmp_path):
 
 @pytest.mark.parametrize("path", sorted((ROOT / "configs").glob("*.yaml")), ids=lambda p: p.stem)
 def test_shipped_training_configs_are_valid(path):
-    from datagen.generate import load_dataset_config
+    from datagen.dataset_config import load_dataset_config
 
     config = load_config(path)
     dataset = load_dataset_config(ROOT / config.dataset.config)

@@ -19,8 +19,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
+from datagen.dataset_config import load_dataset_config, trajectory_config  # noqa: E402
 from datagen.families import FAMILIES  # noqa: E402
-from datagen.generate import load_dataset_config, trajectory_config  # noqa: E402
 from datagen.simulation import simulate  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "datasets"

@@ -30,7 +30,7 @@ from bsms.graph.seeding import SEEDINGS, component_seeds
 from bsms.graph.transitions import Transition, transition_operators
 from datagen.mesh import Mesh
 
-__all__ = ["Level", "Hierarchy", "bistride_levels", "DEFAULT_MIN_NODES"]
+__all__ = ["BistrideLevel", "Hierarchy", "bistride_levels", "DEFAULT_MIN_NODES"]
 
 DEFAULT_MIN_NODES = 32
 """``levels="auto"`` stops after the first level with fewer nodes than this."""
@@ -48,7 +48,7 @@ def edge_index_of(adjacency: sp.csr_matrix) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class Level:
+class BistrideLevel:
     """One level of a :class:`Hierarchy`; ``n`` = its node count, ``m`` = the previous level's.
 
     kept: (n,) int64 sorted indices of this level's nodes in the previous level
@@ -99,7 +99,7 @@ class Hierarchy:
     seeding, self_loops: how it was built. key: the cache key (sha256 hex).
     """
 
-    levels: tuple[Level, ...]
+    levels: tuple[BistrideLevel, ...]
     component_labels: np.ndarray
     seeding: str
     self_loops: bool
@@ -156,7 +156,7 @@ class Hierarchy:
                 for kind, shape in (("down", (n, m)), ("up", (m, n))):
                     parts = [arrays[f"l{l}_{kind}_{name}"] for name in _TRANSITION_ARRAYS]
                     fields[kind] = Transition(*parts, shape)
-            levels.append(Level(**fields))
+            levels.append(BistrideLevel(**fields))
         return cls(tuple(levels), arrays["component_labels"], meta["seeding"], meta["self_loops"],
                    meta["key"])
 
@@ -239,7 +239,7 @@ def build_hierarchy(adjacency: sp.csr_matrix, positions: np.ndarray, levels, see
     labels = labels.astype(np.int64)
     n = adjacency.shape[0]
     weights = np.ones(n)
-    built = [Level(np.arange(n, dtype=np.int64), edge_index_of(adjacency), weights, np.zeros(0, np.int64))]
+    built = [BistrideLevel(np.arange(n, dtype=np.int64), edge_index_of(adjacency), weights, np.zeros(0, np.int64))]
     component_labels = labels
     while _wants_another_level(levels, min_nodes, len(built), built[-1].n_nodes, n_components):
         rng = np.random.default_rng([seed, len(built)])
@@ -249,7 +249,7 @@ def build_hierarchy(adjacency: sp.csr_matrix, positions: np.ndarray, levels, see
         degree = np.diff(adjacency.indptr)
         down, up, weights = transition_operators(closed, kept, degree, weights, self_loops)
         adjacency = coarse_adjacency(closed)
-        built.append(Level(kept, edge_index_of(adjacency), weights, seeds, down, up))
+        built.append(BistrideLevel(kept, edge_index_of(adjacency), weights, seeds, down, up))
         labels, positions = labels[kept], positions[kept]
     return Hierarchy(tuple(built), component_labels, seeding, self_loops, key)
 

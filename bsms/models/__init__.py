@@ -1,7 +1,7 @@
 """Graph models, all built from the same MLPs and message-passing blocks."""
 
 from bsms.models.blocks import EdgeLatentBlock, EdgeSet, MessagePassingBlock
-from bsms.models.bsms_gnn import BSMSGNN, Level, SparseMap, apply_map
+from bsms.models.bsms_gnn import BSMSGNN, Level, apply_transition
 from bsms.models.meshgraphnets import MeshGraphNets
 from bsms.models.mlp import mlp
 
@@ -9,5 +9,5 @@ MODELS = {"bsms_gnn": BSMSGNN, "meshgraphnets": MeshGraphNets}
 
 __all__ = [
     "BSMSGNN", "MODELS", "EdgeLatentBlock", "EdgeSet", "Level", "MeshGraphNets", "MessagePassingBlock",
-    "SparseMap", "apply_map", "mlp",
+    "apply_transition", "mlp",
 ]

@@ -11,39 +11,28 @@ from typing import NamedTuple
 
 from torch import Tensor, nn
 
+from bsms.graph import Transition
 from bsms.models.blocks import EdgeSet, MessagePassingBlock
 from bsms.models.mlp import mlp
 
 
-class SparseMap(NamedTuple):
-    """A linear map between levels as COO triplets: ``out[rows] += weights * x[cols]``.
-
-    rows: (T,) output nodes; cols: (T,) input nodes; weights: (T,); n_out: output size.
-    The down map of the bi-stride hierarchy takes level l to l+1 (weighted averages onto the
-    kept nodes, thesis §4.3.2); the up map returns level l+1 to level l.
-    """
-
-    rows: Tensor
-    cols: Tensor
-    weights: Tensor
-    n_out: int
-
-
 class Level(NamedTuple):
-    """One level of a multi-level graph: its edge sets and the maps to and from the next level.
+    """One level of the multi-level graph a core network reads: its edge sets and the
+    transitions to and from the next level (:class:`~bsms.graph.Transition` with torch tensors).
 
     ``down`` (level l -> l+1) and ``up`` (l+1 -> l) are None on the coarsest level.
     """
 
     edge_sets: list[EdgeSet]
-    down: SparseMap | None
-    up: SparseMap | None
+    down: Transition | None
+    up: Transition | None
 
 
-def apply_map(v: Tensor, sparse_map: SparseMap) -> Tensor:
-    """(N_in, H) -> (n_out, H): out_r = sum over triplets (r, c, w) of w * v_c."""
-    out = v.new_zeros(sparse_map.n_out, v.shape[1])
-    return out.index_add_(0, sparse_map.rows, sparse_map.weights[:, None] * v[sparse_map.cols])
+def apply_transition(v: Tensor, transition: Transition) -> Tensor:
+    """(n_in, H) -> (n_out, H): out_r = sum over triplets (r, c, w) of w * v_c (thesis §4.3.2)."""
+    out = v.new_zeros(transition.shape[0], v.shape[1])
+    weights = transition.weights.to(v.dtype)[:, None]
+    return out.index_add_(0, transition.rows, weights * v[transition.cols])
 
 
 class BSMSGNN(nn.Module):
@@ -81,9 +70,9 @@ class BSMSGNN(nn.Module):
         for l in range(depth - 1):
             v = self.down_blocks[l](v, levels[l].edge_sets)
             skips.append(v)
-            v = apply_map(v, levels[l].down)
+            v = apply_transition(v, levels[l].down)
         v = self.bottom_block(v, levels[depth - 1].edge_sets)
         for l in reversed(range(depth - 1)):
-            v = apply_map(v, levels[l].up)
+            v = apply_transition(v, levels[l].up)
             v = self.up_blocks[l](v, levels[l].edge_sets) + skips[l]
         return self.decoder(v)

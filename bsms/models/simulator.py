@@ -14,7 +14,7 @@ from torch import Tensor, nn
 
 from bsms.data import N_NODE_TYPES, LevelGraph, NodeType
 from bsms.models.blocks import EdgeSet
-from bsms.models.bsms_gnn import BSMSGNN, Level, SparseMap
+from bsms.models.bsms_gnn import BSMSGNN, Level
 from bsms.models.meshgraphnets import MeshGraphNets
 from bsms.normalize import Normalizer
 
@@ -83,13 +83,9 @@ class LearnedSimulator(nn.Module):
             if accumulate:
                 normalizer.accumulate(raw)
             edge_sets.append(EdgeSet(index, normalizer(raw)))
-        down = up = None
-        if l + 1 < self.n_levels:
-            down = SparseMap(graph[f"down_rows_{l}"], graph[f"down_cols_{l}"], graph[f"down_weights_{l}"],
-                             graph.level_size(l + 1))
-            up = SparseMap(graph[f"up_rows_{l}"], graph[f"up_cols_{l}"], graph[f"up_weights_{l}"],
-                           graph.level_size(l))
-        return Level(edge_sets, down, up)
+        if l + 1 == self.n_levels:
+            return Level(edge_sets, None, None)
+        return Level(edge_sets, graph.transition("down", l), graph.transition("up", l))
 
     def forward(self, graph: LevelGraph, accumulate: bool = False) -> Tensor:
         """Normalised velocity change per node, (N, d). ``accumulate`` feeds the normalisers."""

@@ -10,7 +10,7 @@ or raises ConfigError where the family has no room for a foreign body.
 
 from __future__ import annotations
 
-from ..scenes import ConfigError
+from ..config import ConfigError
 from . import balls, cantilever, disks, glyphs, wavy_channel
 
 __all__ = ["FAMILIES", "get_family", "place"]

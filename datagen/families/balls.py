@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from ..scenes import ConfigError
+from ..config import ConfigError
 from ..scenes.balls import BODY_SHAPES
 from ..scenes.base import box_bounds
 from .base import check_ranges, integer, log_midpoint, log_uniform, midpoint, place_disjoint, uniform
@@ -94,4 +94,4 @@ def place(meshes, dconfig, overrides: dict | None = None) -> dict:
         return {"box": [float(v) for v in r["box"]], "centers": centers.tolist(), "sizes": [size] * n,
                 "velocities": drift.tolist(), "E": log_midpoint(r, "E"), "density": midpoint(r, "density")}
 
-    return bodies_config(NAME, DIM, meshes, dconfig, overrides, choose)
+    return bodies_config(NAME, DIM, SCENE, meshes, dconfig, overrides, choose)

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from ..scenes import ConfigError
+from ..config import ConfigError, reject_unknown
 
 __all__ = [
     "check_ranges", "uniform", "log_uniform", "integer", "choice", "place_disjoint", "midpoint", "log_midpoint",
@@ -21,10 +21,7 @@ def check_ranges(family: str, defaults: dict, given: dict) -> dict:
     """``given`` merged over ``defaults``; unknown keys raise ConfigError naming the known ones."""
     if not isinstance(given, dict):
         raise ConfigError(f"config key 'ranges' must be a mapping of {family} ranges, got {given!r}")
-    unknown = sorted(set(given) - set(defaults))
-    if unknown:
-        raise ConfigError(f"unknown key ranges.{unknown[0]} for family {family!r}; "
-                          f"known keys: {', '.join(sorted(defaults))}")
+    reject_unknown(given, defaults, prefix="ranges", where=f"family {family!r}")
     return {**defaults, **given}
 
 
@@ -64,11 +61,13 @@ def log_midpoint(ranges: dict, key: str) -> float:
     return math.sqrt(low * high)
 
 
-def integer(ranges: dict, key: str, rng: np.random.Generator) -> int:
-    """An integer in [low, high], both included."""
+def integer(ranges: dict, key: str, rng: np.random.Generator, minimum: int = 1) -> int:
+    """An integer in [low, high], both included; ``minimum`` is the smallest a range may hold."""
     low, high = _bounds(ranges, key)
     if low != int(low) or high != int(high):
         raise ConfigError(f"ranges.{key} must hold integers, got {ranges[key]!r}")
+    if low < minimum:
+        raise ConfigError(f"ranges.{key} must be at least {minimum}, got {ranges[key]!r}")
     return int(rng.integers(int(low), int(high) + 1))
 
 

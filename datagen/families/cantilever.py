@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scenes import ConfigError
+from ..config import ConfigError
 from .base import check_ranges, log_uniform, uniform
 
 NAME = "cantilever"

@@ -51,4 +51,4 @@ def place(meshes, dconfig, overrides: dict | None = None) -> dict:
         return {"box": [float(v) for v in r["box"]], "centers": centers.tolist(), "sizes": [size] * n,
                 "velocities": velocities.tolist(), "E": log_midpoint(r, "E"), "density": midpoint(r, "density")}
 
-    return bodies_config(NAME, DIM, meshes, dconfig, overrides, choose)
+    return bodies_config(NAME, DIM, SCENE, meshes, dconfig, overrides, choose)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scenes import ConfigError
+from ..config import ConfigError
 from .base import check_ranges, integer, log_midpoint, log_uniform, midpoint, uniform
 from .placement import bodies_config, row_centers
 
@@ -68,4 +68,4 @@ def place(meshes, dconfig, overrides: dict | None = None) -> dict:
         return {"box": [x0, y0, x1, y1], "centers": centers.tolist(), "sizes": [size] * n,
                 "velocities": [velocity] * n, "E": log_midpoint(r, "E"), "density": midpoint(r, "density")}
 
-    return bodies_config(NAME, DIM, meshes, dconfig, overrides, choose)
+    return bodies_config(NAME, DIM, SCENE, meshes, dconfig, overrides, choose)

@@ -14,9 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import ConfigError, read_yaml
 from ..mesh import Mesh
-from ..scenes import ConfigError, get_scene
 from ..scenes import bodies as bodies_scene
+from ..scenes import get_scene
+from ..simulation import resolve_config
 
 __all__ = ["bodies_config", "row_centers", "toward_axis", "SHARED_PARAMS"]
 
@@ -48,10 +50,8 @@ def toward_axis(centers: np.ndarray, middle, speed: float, axes=(0, 1)) -> np.nd
 
 
 def _dataset_config(dconfig, family: str) -> dict:
-    from ..generate import load_dataset_config  # generate imports the families
-
     if isinstance(dconfig, (str, Path)):
-        dconfig = load_dataset_config(dconfig)
+        dconfig = read_yaml(dconfig, what="dataset config")
     if not isinstance(dconfig, dict):
         raise ConfigError(f"dconfig must be a dataset config (a mapping or a YAML path), got {type(dconfig).__name__}")
     if dconfig.get("family", family) != family:
@@ -75,15 +75,15 @@ def _mesh_entry(mesh, k: int, dim: int, family: str):
     return entry, body
 
 
-def bodies_config(family: str, dim: int, meshes, dconfig, overrides: dict | None,
+def bodies_config(family: str, dim: int, scene: str, meshes, dconfig, overrides: dict | None,
                   choose: Callable[[dict, int], dict]) -> dict:
-    """The ``bodies`` simulate() config of ``meshes`` in ``family``'s setting.
+    """The ``bodies`` simulate() config of ``meshes`` in the setting of ``family`` (of dimension
+    ``dim``, sampling scene ``scene``: its defaults give the shared parameters the dataset
+    config does not fix).
 
     choose(ranges, n) -> the family's params for n bodies (box, centers, sizes, velocities,
     E, density, ...); ``overrides`` (bodies scene parameters) replace any chosen value.
     """
-    from . import get_family
-
     if isinstance(meshes, (str, Path, Mesh)) or not isinstance(meshes, (list, tuple)) or not meshes:
         raise ConfigError("meshes must be a non-empty list of Mesh objects or mesh file paths")
     overrides = dict(overrides or {})
@@ -94,14 +94,12 @@ def bodies_config(family: str, dim: int, meshes, dconfig, overrides: dict | None
                               f"known: {known}")
     d = _dataset_config(dconfig, family)
     entries = [_mesh_entry(m, k, dim, family)[0] for k, m in enumerate(meshes)]
-    scene_defaults = get_scene(get_family(family).SCENE).DEFAULTS
+    scene_defaults = get_scene(scene).DEFAULTS
     params = {key: scene_defaults[key] for key in SHARED_PARAMS if key in scene_defaults}
     params.update({key: value for key, value in d["params"].items() if key in SHARED_PARAMS})
     params.update(choose(d["ranges"], len(entries)), meshes=entries)
     params.update(overrides)
     config = {"scene": bodies_scene.NAME, "params": params, "solver": d["solver"], "output": d["output"],
               "seed": d["seed"]}
-    from ..simulation import resolve_config  # checks every value now, not when the run starts
-
-    resolve_config(config)
+    resolve_config(config)  # checks every value now, not when the run starts
     return config

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scenes import ConfigError
+from ..config import ConfigError
 from .base import check_ranges, choice, log_uniform, uniform
 
 NAME = "wavy_channel"

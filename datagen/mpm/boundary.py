@@ -40,7 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..mesh import ExtendedMesh, Mesh
+from ..layer import ExtendedMesh
+from ..mesh import Mesh
 from .kernels import Grid
 from .locate import CellLocator, LocateStatus, locate
 

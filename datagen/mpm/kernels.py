@@ -6,7 +6,7 @@ Every kernel returns a :class:`KernelResult` with ``index (P, K)`` (-1 = empty s
 - :func:`umls_kernel` — UMLS-MPM (UMLS §2.3): MLS with a linear basis over the 1-ring of the
   containing simplex, quadratic B-spline sample weights times the diminishing factor eta.
 - :func:`linear_kernel` — the C0 barycentric hat (suffers the cell-crossing error).
-- :func:`bspline_kernel` — quadratic B-spline MLS-MPM on a regular :class:`Grid` (reference).
+- :func:`bspline_kernel` — quadratic B-spline MLS-MPM on a regular :class:`Grid` (the structured B-spline solver).
 
 Mesh kernels take a :class:`~datagen.mesh.Mesh`, an :class:`~datagen.mesh.ExtendedMesh`, or
 prebuilt :class:`MeshTables`; build the tables once (``MeshTables.build``) when calling
@@ -22,7 +22,8 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from ..mesh import ExtendedMesh, Mesh
+from ..layer import ExtendedMesh
+from ..mesh import Mesh
 from . import linalg
 from .locate import CellLocator, LocateStatus, Location, locate
 
@@ -304,7 +305,7 @@ def umls_kernel(mesh, x, eta: bool = True, *, nonnegative: bool = True, location
     Active nodes are the 1-ring N^1 of the containing cell; sample weights are
     d_i = N(|x_i - x_p| / h) * eta_i with N the quadratic B-spline, h the longest physical
     edge and eta_i = sum_{n in N^0} B_n A(i, n) (UMLS eq. 32, A with self-loops, B the
-    barycentric coordinates, eq. 33). ``eta=False`` drops eta (the ablation of UMLS Fig. 7).
+    barycentric coordinates, UMLS eq. 33). ``eta=False`` drops eta (the ablation of UMLS Fig. 7).
 
     nonnegative: where MLS gives a particle negative weights (boundary cells without the extra
     layer, UMLS Fig. 5; with it, a few particles near 3D creases), use the closest non-negative

@@ -3,7 +3,7 @@
 Each material gives, for deformation gradients ``F: (P, d, d)``, the Kirchhoff stress
 ``tau = P F^T = J sigma`` (what the nodal force needs: f_i = -sum_p V_p^0 tau_p grad w_ip,
 UMLS eq. 10 with V_p = J V_p^0), the first Piola-Kirchhoff stress ``P`` and the strain energy
-density ``psi`` per unit reference volume. Lamé parameters follow from (E, nu) with the 3D
+density ``psi`` per unit undeformed volume. Lamé parameters follow from (E, nu) with the 3D
 formulas in every dimension (plane strain in 2D; in 1D exact only for nu = 0).
 
 :class:`WeaklyCompressibleFluid` has no shear stiffness: a pressure from J (Tait equation of
@@ -62,7 +62,7 @@ class Material(ABC):
 
     @abstractmethod
     def energy_density(self, F: torch.Tensor) -> torch.Tensor:
-        """(P,) strain energy per unit reference volume."""
+        """(P,) strain energy per unit undeformed volume."""
 
     def first_piola(self, F: torch.Tensor) -> torch.Tensor:
         """P = tau F^-T."""
@@ -77,16 +77,12 @@ class Material(ABC):
 def _mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Batched products a b of small matrices (P, d, d).
 
-    The reference-configuration solver keeps F by component (the batch axis fastest in memory);
-    there a sum of d elementwise products of contiguous (d, d, P) blocks is several times faster
-    than a batched matrix product, which is kept for the usual layout.
+    The A-ULMPM reference-configuration step keeps F by component (the batch axis fastest in
+    memory, see :mod:`~datagen.mpm.linalg`); there the component product is several times
+    faster than a batched matrix product, which is kept for the usual layout.
     """
     if a.dim() == 3 and a.shape[0] > 1 and a.stride(0) == 1:
-        ac, bc = a.permute(1, 2, 0), b.permute(1, 2, 0)
-        out = ac[:, 0, None] * bc[None, 0]
-        for j in range(1, a.shape[-1]):
-            out.addcmul_(ac[:, j, None], bc[None, j])
-        return out.permute(2, 0, 1)
+        return linalg.matrices(linalg.component_mm(linalg.components(a), linalg.components(b)))
     return a @ b
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ..config import ConfigError
 from . import (
     balls,
     bodies,
@@ -16,7 +17,7 @@ from . import (
     vibrating_bar,
     wavy_channel,
 )
-from .base import ConfigError, Scene
+from .base import Scene
 
 __all__ = ["SCENES", "get_scene", "ConfigError", "Scene"]
 

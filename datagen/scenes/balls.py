@@ -14,8 +14,9 @@ import math
 import numpy as np
 
 from .. import shapes
+from ..config import ConfigError
 from ..mesh import Mesh
-from .base import ConfigError, Scene, box_bounds, box_domain, check_params, contained_bodies, merge_bodies
+from .base import Scene, box_bounds, box_domain, check_params, contained_bodies, merge_bodies
 
 NAME = "balls"
 DEFAULTS = {

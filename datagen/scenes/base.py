@@ -7,19 +7,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import shapes
+from ..config import ConfigError, reject_unknown
 from ..mesh import Mesh
 from ..mpm.boundary import Clamp, Wall
 from ..mpm.materials import MATERIALS, Material
 
 __all__ = [
-    "ConfigError", "Scene", "check_params", "make_material", "lattice", "lattice_mesh",
+    "Scene", "check_params", "make_material", "lattice", "lattice_mesh",
     "chain_mesh", "line_mesh", "vertex_volumes", "nearest", "contained_bodies", "merge_bodies", "outline",
     "box_bounds", "box_domain",
 ]
-
-
-class ConfigError(ValueError):
-    """A configuration a user wrote that cannot be used; the message names the key."""
 
 
 @dataclass
@@ -31,8 +28,8 @@ class Scene:
     x, v: (P, d) particles; volume: (P,) rest volumes; materials: (material, particle ids or
     None = all); tracked: (N,) the particle index of each body vertex; walls, clamps:
     boundary conditions; gravity: (d,); probes: name -> particle index whose stress is
-    recorded; grid_spacing: default spacing of the structured B-spline reference grid.
-    node_type: (N,) datagen.dataset.NodeType codes of the body vertices (None: all free);
+    recorded; grid_spacing: default grid spacing of the structured B-spline solver.
+    node_type: (N,) datagen.trajectory.NodeType codes of the body vertices (None: all free);
     body_id: (N,) body of each vertex (None: one body); obstacle_nodes (M, d) and
     obstacle_facets (F, d): wall/container geometry a model can see (None: none).
     """
@@ -76,10 +73,7 @@ def check_params(scene: str, defaults: dict, given: dict, *, positive=(), choice
     out-of-choice values raise ConfigError naming ``params.<key>``."""
     if not isinstance(given, dict):
         raise ConfigError(f"params must be a mapping of {scene} parameters, got {type(given).__name__}")
-    unknown = sorted(set(given) - set(defaults))
-    if unknown:
-        raise ConfigError(f"unknown parameter params.{unknown[0]} for scene {scene!r}; "
-                          f"known parameters: {', '.join(sorted(defaults))}")
+    reject_unknown(given, defaults, prefix="params", where=f"scene {scene!r}")
     out = dict(defaults)
     for key, value in given.items():
         default = defaults[key]

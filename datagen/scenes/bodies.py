@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..config import ConfigError
 from ..mesh import Mesh, MeshError
 from ..mpm.locate import CellLocator, LocateStatus, locate
-from .base import ConfigError, Scene, box_bounds, box_domain, check_params, contained_bodies, merge_bodies
+from .base import Scene, box_bounds, box_domain, check_params, contained_bodies, merge_bodies
 
 NAME = "bodies"
 DEFAULTS = {
@@ -156,20 +157,39 @@ def _check_fit(placed: list[Mesh], p: dict) -> None:
                               f"to {np.round(hi, 6).tolist()}, outside params.box {p['box']}; move it inside")
 
 
+def _pieces(placed: list[Mesh], p: dict) -> list[tuple[Mesh, int, str]]:
+    """Every connected component of every body: (mesh, body index, words naming it)."""
+    pieces = []
+    for k, mesh in enumerate(placed):
+        what = _describe(p["meshes"][k], k)
+        if mesh.n_components == 1:
+            pieces.append((mesh, k, what))
+            continue
+        for c in range(mesh.n_components):
+            cells = mesh.cells[mesh.component_labels[mesh.cells[:, 0]] == c]
+            pieces.append((Mesh.from_arrays(mesh.nodes, cells, drop_unused=True), k, f"piece {c} of {what}"))
+    return pieces
+
+
 def _check_apart(placed: list[Mesh], p: dict) -> None:
-    """No vertex of one body may start inside another (they would be stuck together)."""
-    for i, a in enumerate(placed):
+    """No vertex of one body, or of one piece of a body, may start inside another: they would
+    be stuck together (two overlapping copies in one mesh file are refused like two placed bodies)."""
+    pieces = _pieces(placed, p)
+    for i, (a, a_body, a_what) in enumerate(pieces):
         locator = None
-        for j, b in enumerate(placed):
+        for j, (b, b_body, b_what) in enumerate(pieces):
             disjoint = np.any(b.nodes.min(0) > a.nodes.max(0)) or np.any(b.nodes.max(0) < a.nodes.min(0))
             if i == j or disjoint:
                 continue
             if locator is None:
                 locator = CellLocator.build(a)
             status = locate(locator, torch.tensor(b.nodes)).status
-            if bool((status == LocateStatus.INSIDE).any()):
-                raise ConfigError(f"params.centers: {_describe(p['meshes'][j], j)} starts inside "
-                                  f"{_describe(p['meshes'][i], i)}; move them apart")
+            if not bool((status == LocateStatus.INSIDE).any()):
+                continue
+            if a_body == b_body:
+                raise ConfigError(f"params.meshes[{a_body}]: {b_what} overlaps {a_what}: the mesh holds "
+                                  "overlapping bodies; remove the copy, or mesh them as one body")
+            raise ConfigError(f"params.centers: {b_what} starts inside {a_what}; move them apart")
 
 
 def build(p: dict) -> Scene:

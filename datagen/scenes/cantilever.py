@@ -17,9 +17,9 @@ import math
 import numpy as np
 
 from .. import shapes
-from ..dataset import NodeType
 from ..mesh import Mesh
 from ..mpm.boundary import Wall
+from ..trajectory import NodeType
 from .base import Scene, check_params, lattice, lattice_mesh, make_material, nearest, outline
 
 NAME = "cantilever"

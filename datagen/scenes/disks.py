@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from .. import shapes
-from .base import ConfigError, Scene, check_params, contained_bodies, merge_bodies
+from ..config import ConfigError
+from .base import Scene, check_params, contained_bodies, merge_bodies
 
 NAME = "disks"
 DEFAULTS = {

@@ -14,9 +14,10 @@ from __future__ import annotations
 import numpy as np
 
 from .. import shapes
+from ..config import ConfigError
 from ..mpm.boundary import Wall
 from ..mpm.materials import WeaklyCompressibleFluid
-from .base import ConfigError, Scene, check_params, outline, vertex_volumes
+from .base import Scene, check_params, outline, vertex_volumes
 
 NAME = "droplet"
 DEFAULTS = {

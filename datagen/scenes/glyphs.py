@@ -11,8 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from .. import shapes
+from ..config import ConfigError
 from ..mesh import Mesh
-from .base import ConfigError, Scene, check_params, contained_bodies, merge_bodies
+from .base import Scene, check_params, contained_bodies, merge_bodies
 
 NAME = "glyphs"
 DEFAULTS = {

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import shapes
+from ..config import ConfigError
 from ..mpm.boundary import Wall
 from .base import Scene, check_params, lattice, lattice_mesh, make_material
 
@@ -40,8 +41,6 @@ def params(given: dict) -> dict:
 def build(p: dict) -> Scene:
     box, side = p["box"], p["side"]
     if not side < box:
-        from .base import ConfigError
-
         raise ConfigError(f"params.side ({side}) must be smaller than params.box ({box})")
     center = np.full(2, box / 2)
     spacing = p["mesh_size"] / p["particles_per_cell"]

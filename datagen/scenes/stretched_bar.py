@@ -1,7 +1,7 @@
 """Stretched bar (2D analogue of A-ULMPM §6.2): pulled at both ends, held, then released.
 
 A hyperelastic bar of ``length`` x ``height`` lies in a box with room to stretch. The particles
-within ``grip`` of each end are held by grips (:class:`datagen.mpm.solver.Grip`) that move
+within ``grip`` of each end are held by grips (:class:`datagen.mpm.model.Grip`) that move
 apart at ``pull_speed`` each until ``pull_time``, stand still until ``release_time`` and then
 let go. A mass-proportional ``damping`` (1/s; the default is near critical) lets the released
 bar settle within the run. Elastic material: a bar that kept its material connectivity
@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import shapes
+from ..config import ConfigError
 from ..mpm.boundary import Wall
-from .base import ConfigError, Scene, check_params, lattice, lattice_mesh, make_material
+from .base import Scene, check_params, lattice, lattice_mesh, make_material
 
 NAME = "stretched_bar"
 DEFAULTS = {

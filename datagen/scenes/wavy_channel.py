@@ -12,8 +12,9 @@ from __future__ import annotations
 import numpy as np
 
 from .. import shapes
+from ..config import ConfigError
 from ..mesh import Mesh
-from .base import ConfigError, Scene, check_params, contained_bodies
+from .base import Scene, check_params, contained_bodies
 
 NAME = "wavy_channel"
 DEFAULTS = {

@@ -1,0 +1,323 @@
+"""A training run: its typed config, its folder, its dataset and the model it describes.
+
+Everything that both training (:mod:`bsms.trainer`) and the tools that read a finished run
+(:mod:`bsms.evaluate`, :mod:`bsms.infer`) need lives here, so neither imports the other.
+
+A run lives in ``<runs>/<name>/``: ``config.yaml`` (the resolved config), ``dataset.json``
+(the generating config of its dataset, so the folder stands alone), ``metrics.csv`` and
+``checkpoints/{latest,best}.pt`` (:mod:`bsms.checkpoint`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import torch
+import yaml
+
+from bsms.checkpoint import CheckpointError, load_checkpoint
+from bsms.config import ConfigError, apply_overrides, build, load, to_dict
+from bsms.data import GraphOptions, NoiseOptions
+from bsms.models.simulator import LearnedSimulator
+from bsms.rollout import DEFAULT_BOUND
+from bsms.solver_runs import SOLVER_SETTINGS
+from datagen.atomic import atomic_path
+from datagen.config import reject_unknown
+from datagen.dataset_config import load_dataset_config, trajectory_path
+from datagen.generate import generate, jobs
+from datagen.metadata import write_metadata
+
+__all__ = [
+    "Config", "DatasetConfig", "ModelConfig", "OptimConfig", "TrainConfig", "EvaluateConfig", "load_config",
+    "checkpoint_path", "find_checkpoint", "write_run_files", "prepare_dataset", "run_dataset_config",
+    "split_files", "build_model", "load_model", "resolve_device",
+]
+
+
+# ----------------------------------------------------------------------------- config
+@dataclass
+class DatasetConfig:
+    """config: the dataset YAML (``configs/datasets/...``); root: folder of datasets;
+    generate: generate missing trajectories (resumable) before training; workers: processes
+    for that."""
+
+    config: str = ""
+    root: str = "data"
+    generate: bool = True
+    workers: int = 1
+
+    def validate(self, prefix: str) -> None:
+        if not self.config:
+            raise ConfigError(f"config key '{prefix}.config' is required: the dataset config YAML, "
+                              "e.g. configs/datasets/glyphs_quick.yaml")
+        if self.workers < 1:
+            raise ConfigError(f"config key '{prefix}.workers' must be >= 1, got {self.workers}")
+
+
+@dataclass
+class ModelConfig:
+    """name: the core network; latent: width of latents and hidden layers; hidden_layers per
+    MLP; passes: message passes of meshgraphnets (bsms_gnn makes one per level)."""
+
+    name: Literal["bsms_gnn", "meshgraphnets"] = "bsms_gnn"
+    latent: int = 128
+    hidden_layers: int = 2
+    passes: int = 15
+
+    def validate(self, prefix: str) -> None:
+        _at_least(self, prefix, 1, ("latent", "hidden_layers", "passes"))
+
+
+@dataclass
+class OptimConfig:
+    """AdamW with a linear warm-up over ``warmup`` steps, then a cosine decay to
+    ``lr * min_lr_ratio`` at the last step; gradients clipped to norm ``grad_clip`` (null: off)."""
+
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    warmup: int = 100
+    min_lr_ratio: float = 0.01
+    grad_clip: float | None = 1.0
+
+    def validate(self, prefix: str) -> None:
+        if self.lr <= 0:
+            raise ConfigError(f"config key '{prefix}.lr' must be positive, got {self.lr}")
+        _at_least(self, prefix, 0, ("weight_decay", "warmup"))
+        if not 0.0 <= self.min_lr_ratio <= 1.0:
+            raise ConfigError(f"config key '{prefix}.min_lr_ratio' must lie in [0, 1], got {self.min_lr_ratio}")
+        if self.grad_clip is not None and self.grad_clip <= 0:
+            raise ConfigError(f"config key '{prefix}.grad_clip' must be positive or null, got {self.grad_clip}")
+
+
+@dataclass
+class TrainConfig:
+    """steps and batch_size (graphs per step, over all processes); normalizer_steps: batches
+    the normalisers learn from before they freeze; log/valid/checkpoint cadence in steps;
+    valid_samples: validation samples (evenly spread over the split); device: auto, cpu, cuda
+    or cuda:N; amp: bfloat16 autocast (CUDA only); workers: data-loading processes."""
+
+    steps: int = 10_000
+    batch_size: int = 2
+    seed: int = 0
+    normalizer_steps: int = 1000
+    log_every: int = 50
+    valid_every: int = 500
+    valid_samples: int = 200
+    checkpoint_every: int = 500
+    device: str = "auto"
+    amp: bool = False
+    workers: int = 0
+    progress: bool = True
+
+    def validate(self, prefix: str) -> None:
+        _at_least(self, prefix, 1, ("steps", "batch_size", "normalizer_steps", "log_every", "valid_every",
+                                    "valid_samples", "checkpoint_every"))
+        _at_least(self, prefix, 0, ("seed", "workers"))
+        _check_device(self.device, f"{prefix}.device")
+
+
+@dataclass
+class EvaluateConfig:
+    """The ``evaluate`` section of a training config (train.py evaluates after training).
+
+    split: dataset split; trajectories: at most this many (null: all); steps: rollout steps
+    (null: every frame of the trajectory); bound: relative error (of the body size) that
+    marks a rollout unstable; solver: the solver settings to time and compare
+    (:data:`bsms.solver_runs.SOLVER_SETTINGS`; ``ground_truth`` is the speed-up's baseline);
+    gifs: rollout GIFs to draw; device: auto, cpu or cuda[:N]; threads: CPU threads of the
+    learned models while timed (null: torch's default). The solver runs with the threads its
+    dataset config gives (the family configs use 1), so the default of 1 times both alike;
+    small graphs also run fastest on one thread.
+    """
+
+    enabled: bool = True
+    split: str = "test"
+    trajectories: int | None = None
+    steps: int | None = None
+    bound: float = DEFAULT_BOUND
+    solver: list[str] = field(default_factory=lambda: list(SOLVER_SETTINGS))
+    gifs: int = 2
+    device: str = "auto"
+    threads: int | None = 1
+
+    def validate(self, prefix: str) -> None:
+        if self.split not in ("train", "valid", "test"):
+            raise ConfigError(f"config key '{prefix}.split' must be train, valid or test, got {self.split!r}")
+        _at_least(self, prefix, 1, ("trajectories", "steps", "threads"), optional=True)
+        _at_least(self, prefix, 0, ("gifs",))
+        if self.bound <= 0:
+            raise ConfigError(f"config key '{prefix}.bound' must be positive, got {self.bound}")
+        # runs saved before the setting was renamed list 'reference'
+        self.solver = ["ground_truth" if s == "reference" else s for s in self.solver]
+        reject_unknown(dict.fromkeys(self.solver), SOLVER_SETTINGS, prefix=f"{prefix}.solver",
+                       where=f"'{prefix}.solver'")
+        _check_device(self.device, f"{prefix}.device")
+
+
+@dataclass
+class Config:
+    """A training run: what data, which graphs, which model, how to optimise, train and evaluate."""
+
+    name: str = ""
+    runs: str = "runs"
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    graph: GraphOptions = field(default_factory=GraphOptions)
+    noise: NoiseOptions = field(default_factory=NoiseOptions)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
+
+    def validate(self, prefix: str = "") -> None:
+        if not self.name or "/" in self.name or self.name.startswith("."):
+            raise ConfigError(f"config key 'name' must be a run folder name (no '/'), got {self.name!r}")
+
+    @property
+    def run_dir(self) -> Path:
+        return Path(self.runs) / self.name
+
+
+def _at_least(section, prefix: str, lowest: int, keys, optional: bool = False) -> None:
+    """ConfigError naming the first of ``keys`` below ``lowest`` (None passes when ``optional``)."""
+    for key in keys:
+        value = getattr(section, key)
+        if value is None and optional:
+            continue
+        if value < lowest:
+            allowed = f">= {lowest}" + (" or null" if optional else "")
+            raise ConfigError(f"config key '{prefix}.{key}' must be {allowed}, got {value}")
+
+
+def _check_device(name: str, key: str) -> None:
+    if name not in ("auto", "cpu", "cuda") and not (name.startswith("cuda:") and name[5:].isdigit()):
+        raise ConfigError(f"config key '{key}' must be auto, cpu, cuda or cuda:N, got {name!r}")
+
+
+def resolve_device(name: str, key: str) -> torch.device:
+    """The device a checked config value names (auto: cuda where available, else cpu); ConfigError
+    naming ``key`` when it asks for CUDA on a machine without."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"config key '{key}' is {name!r} but CUDA is not available; use cpu or auto")
+    return torch.device(name)
+
+
+def load_config(source, overrides: list[str] = ()) -> Config:
+    """A checked :class:`Config` from a YAML path or a mapping, with ``key=value`` overrides."""
+    data = load(source) if isinstance(source, (str, Path)) else dict(source)
+    return build(Config, apply_overrides(data, list(overrides)))
+
+
+# ----------------------------------------------------------------------------- run folder
+def checkpoint_path(run_dir, which: str) -> Path:
+    """``<run_dir>/checkpoints/<which>.pt`` (which: latest or best)."""
+    return Path(run_dir) / "checkpoints" / f"{which}.pt"
+
+
+def find_checkpoint(run_dir, which: str = "best") -> Path:
+    """The checkpoint ``which`` of a run folder, falling back from best to latest."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise CheckpointError(f"run folder {run_dir} does not exist; train one with python train.py CONFIG")
+    order = [which] + (["latest"] if which == "best" else [])
+    for name in order:
+        if checkpoint_path(run_dir, name).is_file():
+            return checkpoint_path(run_dir, name)
+    raise CheckpointError(f"run folder {run_dir} has no usable checkpoint (looked for "
+                          f"{', '.join(f'checkpoints/{n}.pt' for n in order)}); train it with python train.py CONFIG "
+                          "(or --resume an interrupted run)")
+
+
+def write_run_files(config: Config, dataset_folder: Path) -> None:
+    """``config.yaml`` and (where the dataset has metadata) ``dataset.json`` of a new run folder."""
+    run_dir = config.run_dir
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_path(run_dir / "config.yaml") as tmp:
+        tmp.write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+    metadata = Path(dataset_folder) / "metadata.json"
+    if metadata.is_file():
+        with atomic_path(run_dir / "dataset.json") as tmp:
+            tmp.write_text(json.dumps(json.loads(metadata.read_text())["config"], indent=1))
+
+
+def run_dataset_config(run_dir, config: Config) -> dict:
+    """The generating dataset config of a run: its ``dataset.json``, else ``config.dataset.config``."""
+    saved = Path(run_dir) / "dataset.json"
+    if saved.is_file():
+        return json.loads(saved.read_text())
+    try:
+        return load_dataset_config(config.dataset.config)
+    except ConfigError as exc:
+        raise CheckpointError(f"run folder {run_dir} has no dataset.json and its dataset config cannot be read "
+                              f"({exc}); run from the folder train.py ran in") from None
+
+
+# ----------------------------------------------------------------------------- dataset
+def _dataset_config_path(config: Config, base: Path | None) -> Path:
+    path = Path(config.dataset.config)
+    if not path.is_file() and base is not None and (base / path).is_file():
+        path = base / path
+    if not path.is_file():
+        raise ConfigError(f"config key 'dataset.config': dataset config {config.dataset.config} does not exist "
+                          "(give a path relative to the working folder, e.g. configs/datasets/glyphs_quick.yaml)")
+    return path
+
+
+def prepare_dataset(config: Config, base: Path | None = None, progress: bool = True) -> Path:
+    """The dataset folder of ``config``, generated first where trajectories are missing.
+
+    base: folder that a relative ``dataset.config`` may also be relative to (the config file's).
+    """
+    path = _dataset_config_path(config, base)
+    dconfig = load_dataset_config(path)
+    root = Path(config.dataset.root)
+    missing = [(s, k) for s, k in jobs(dconfig) if not trajectory_path(root, dconfig, s, k).is_file()]
+    if missing and not config.dataset.generate:
+        raise ConfigError(f"dataset {dconfig['dataset']} lacks {len(missing)} trajectory files under {root}; "
+                          f"generate them with python -m datagen {path} --out {root}, or set dataset.generate: true")
+    if missing:
+        generate(path, out=root, workers=config.dataset.workers, progress=progress)
+    folder = root / dconfig["dataset"]
+    if not (folder / "metadata.json").is_file():
+        write_metadata(folder, dconfig)
+    return folder
+
+
+def split_files(folder: Path, split: str) -> list[Path]:
+    """The trajectory files of ``split`` in a dataset folder, sorted; ConfigError when there are none."""
+    files = sorted((Path(folder) / split).glob("*.h5"))
+    if not files:
+        raise ConfigError(f"dataset folder {folder} has no {split} trajectories; its config must give "
+                          f"splits.{split} > 0")
+    return files
+
+
+# ----------------------------------------------------------------------------- model
+def build_model(config: Config, dim: int) -> LearnedSimulator:
+    """The learned simulator a config describes, for dimension ``dim`` (untrained)."""
+    return LearnedSimulator(
+        config.model.name, dim, n_levels=config.graph.levels, contact=config.graph.contact,
+        n_constants=len(config.graph.constants), latent=config.model.latent, n_passes=config.model.passes,
+        hidden_layers=config.model.hidden_layers, max_accumulations=config.train.normalizer_steps,
+    )
+
+
+def load_model(source, which: str = "best", device="cpu") -> tuple[LearnedSimulator, Config, dict]:
+    """(model in eval mode on ``device``, Config, checkpoint dict) from a run folder or a checkpoint file."""
+    path = Path(source)
+    path = path if path.is_file() else find_checkpoint(path, which)
+    state = load_checkpoint(path)
+    try:
+        config = build(Config, state["config"])
+    except ConfigError as exc:
+        raise CheckpointError(f"checkpoint {path} holds a config this bsms cannot read ({exc})") from None
+    model = build_model(config, int(state["dim"]))
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        raise CheckpointError(f"checkpoint {path}: its weights do not fit its own config ({str(exc)[:200]})") from None
+    return model.to(device).eval(), config, state

@@ -1,0 +1,99 @@
+"""Reading what a user wrote: the one error for a bad configuration and the known-keys check.
+
+Config files are YAML; :func:`read_yaml` resolves ``extends`` (a config, by relative path,
+that this one overrides). Every configuration a person writes (a simulation config, scene parameters, a dataset's
+ranges, a training run) goes through :func:`reject_unknown`, so a misspelt key gets the same
+message everywhere: the dotted key and what the place accepts.
+"""
+
+from __future__ import annotations
+
+import copy
+import tempfile
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+__all__ = ["ConfigError", "reject_unknown", "read_yaml", "merge", "output_folder"]
+
+
+class ConfigError(ValueError):
+    """A configuration a user wrote that cannot be used; the message names the key."""
+
+
+def reject_unknown(given: Mapping, known: Iterable[str], *, prefix: str = "", where: str = "the config") -> None:
+    """Raise :class:`ConfigError` naming the first key of ``given`` (sorted) not in ``known``.
+
+    ``prefix`` is the dotted path of ``given`` inside the whole config ('' at the top level);
+    ``where`` says in words what accepts the keys ("scene 'droplet'", "'optim'").
+    Message: ``unknown config key 'PREFIX.KEY'; WHERE accepts: A, B, C``.
+    """
+    known = set(known)
+    unknown = sorted(str(key) for key in set(given) - known)
+    if unknown:
+        name = f"{prefix}.{unknown[0]}" if prefix else unknown[0]
+        raise ConfigError(f"unknown config key '{name}'; {where} accepts: {', '.join(sorted(known))}")
+
+
+def merge(base: Mapping, over: Mapping) -> dict:
+    """``over`` on top of ``base``: mappings merge key by key, anything else is replaced."""
+    out = copy.deepcopy(dict(base))
+    for key, value in over.items():
+        nested = isinstance(value, Mapping) and isinstance(out.get(key), Mapping)
+        out[key] = merge(out[key], value) if nested else copy.deepcopy(value)
+    return out
+
+
+def read_yaml(path, *, what: str = "config", replace: Iterable[str] = (), _chain: tuple = ()) -> dict:
+    """The mapping in YAML file ``path``, with ``extends: PARENT`` resolved.
+
+    PARENT is a path relative to ``path``'s folder; this file's keys merge over the parent's
+    (:func:`merge`), except the top-level keys named in ``replace``, which this file's value
+    replaces whole. ``what`` names the file in errors ("dataset config").
+    """
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{what} {path} does not exist")
+    if path.resolve() in _chain:
+        raise ConfigError(f"{what} {path}: 'extends' forms a cycle")
+    try:
+        with open(path) as fh:
+            config = yaml.safe_load(fh)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{what} {path} is not valid YAML: {exc}") from None
+    if not isinstance(config, dict):
+        raise ConfigError(f"{what} {path} must hold a mapping of keys to values, got {type(config).__name__}")
+    parent = config.pop("extends", None)
+    if parent is None:
+        return config
+    if not isinstance(parent, str):
+        raise ConfigError(f"{what} {path}: 'extends' must be a file path, got {parent!r}")
+    base = read_yaml(path.parent / parent, what=what, replace=replace, _chain=(*_chain, path.resolve()))
+    merged = merge(base, config)
+    for key in replace:
+        if key in config:
+            merged[key] = config[key]
+    return merged
+
+
+def output_folder(path, key: str) -> Path:
+    """Folder ``path``, created with its parents when missing, once a file could be written in it.
+
+    ``key`` names where the user gave it (``--out``, ``runs``). Raises ConfigError before any
+    work starts when part of the path is a file or the folder cannot be written to.
+    """
+    path = Path(path).expanduser()
+    for existing in (path, *path.parents):
+        if existing.exists():
+            if not existing.is_dir():
+                raise ConfigError(f"{key} {path}: {existing} is a file, not a folder; give a folder path")
+            break
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{key} {path}: cannot write there ({exc.strerror or exc}); give a folder you can "
+                          "write to") from None
+    return path

@@ -1,0 +1,45 @@
+"""Kernel slots and background nodes: the scatter, gather and weighted sums every transfer uses.
+
+A kernel gives each particle p a row of K slots (node index, weight w_ip, gradient grad w_ip).
+Node fields are stored by axis, (c, N), and slot fields as (c, P, K): every operation is then
+elementwise on contiguous blocks or a reduction over K, which torch does fast.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .kernels import KernelResult
+
+__all__ = ["scatter", "gather", "interpolate", "moment", "apic_inertia"]
+
+
+def scatter(k: KernelResult, values: torch.Tensor, n_nodes: int) -> torch.Tensor:
+    """Sum slot values (c, P, K) onto nodes -> (c, N); empty slots carry zeros."""
+    c = values.shape[0]
+    flat = k.index.clamp(min=0).reshape(1, -1).expand(c, -1)
+    return values.new_zeros((c, n_nodes)).scatter_add_(1, flat, values.reshape(c, -1))
+
+
+def gather(k: KernelResult, field: torch.Tensor) -> torch.Tensor:
+    """Node field (c, N) seen from every slot -> (c, P, K)."""
+    flat = k.index.clamp(min=0).reshape(-1)
+    out = field.new_empty((field.shape[0], flat.numel()))
+    for row, dest in zip(field, out, strict=True):
+        torch.index_select(row, 0, flat, out=dest)
+    return out.view((field.shape[0],) + k.index.shape)
+
+
+def interpolate(k: KernelResult, slots: torch.Tensor) -> torch.Tensor:
+    """sum_i w_ip u_i for slot values (c, P, K) -> (P, c)."""
+    return (slots * k.weight).sum(dim=-1).T
+
+
+def moment(k: KernelResult, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(P, c, e): sum_k w_pk a_p,k b_p,k^T for slot fields a (c, P, K) and b (e, P, K)."""
+    return torch.bmm((a * k.weight).permute(1, 0, 2), b.permute(1, 2, 0))
+
+
+def apic_inertia(k: KernelResult) -> torch.Tensor:
+    """(P, d, d) the APIC inertia D_p = sum_i w_ip (x_i - x_p)(x_i - x_p)^T (UMLS eq. 48)."""
+    return moment(k, k.offset_axes, k.offset_axes)
