@@ -35,6 +35,7 @@ from bsms.rollout import body_size, peak_memory_mb, rollout, rollout_metrics, su
 from bsms.run import EvaluateConfig, load_model, resolve_device, run_dataset_config, split_files
 from bsms.solver_runs import SOLVER_SETTINGS, frame_dt, free_nodes, run_solver
 from datagen.atomic import atomic_path
+from datagen.config import output_folder
 from datagen.dataset import DatasetError, load
 
 __all__ = ["evaluate", "main"]
@@ -326,6 +327,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         _, config, _ = load_model(args.run_dir)
+        if args.device is not None:
+            resolve_device(args.device, "--device")
+        output_folder(args.run_dir, "the run folder (the report is written there)")
         options = copy.deepcopy(config.evaluate)
         for key in ("split", "steps", "trajectories", "device", "threads"):
             if getattr(args, key) is not None:

@@ -26,9 +26,10 @@ from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.data import NodeType, Scenario
 from bsms.rollout import DEFAULT_BOUND, body_size, rollout, rollout_metrics
-from bsms.run import load_model, run_dataset_config
+from bsms.run import load_model, resolve_device, run_dataset_config
 from datagen import simulate
 from datagen.atomic import atomic_path
+from datagen.config import output_folder
 from datagen.dataset import DatasetError
 from datagen.families import place
 from datagen.mesh import Mesh, MeshError
@@ -84,6 +85,9 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     paths = [Path(m) for m in meshes]
     if not paths:
         raise InferError("give at least one mesh file (--mesh FILE)")
+    resolve_device(device, "--device")  # checked, with the output folder, before any work
+    folder = Path(out) if out is not None else run_dir / "infer" / "_".join(p.stem for p in paths)
+    output_folder(folder, "--out" if out is not None else "the output folder (give another with --out)")
     bodies = [read_mesh(p, dim, run_dir) for p in paths]
     dconfig = run_dataset_config(run_dir, config)
     sim_config = place(dconfig["family"], [str(p) for p in paths], dconfig, overrides or {})
@@ -102,8 +106,6 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     v0 = scenario.full(scene.v[scene.tracked][None], 0.0)[0]
     result = rollout(model, scenario, x0, v0, steps, device=device, progress=progress)
     predicted = result.positions[:, : scenario.n_body]
-    folder = Path(out) if out is not None else run_dir / "infer" / "_".join(p.stem for p in paths)
-    folder.mkdir(parents=True, exist_ok=True)
     summary = {
         "run": str(run_dir), "meshes": [str(p) for p in paths], "nodes": [b.n_nodes for b in bodies],
         "graph_nodes_per_level": [int(n) for n in scenario.hierarchy.node_counts], "steps": len(predicted) - 1,

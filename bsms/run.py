@@ -191,18 +191,25 @@ def _at_least(section, prefix: str, lowest: int, keys, optional: bool = False) -
             raise ConfigError(f"config key '{prefix}.{key}' must be {allowed}, got {value}")
 
 
+def _device_label(key: str) -> str:
+    return key if key.startswith("--") else f"config key '{key}'"
+
+
 def _check_device(name: str, key: str) -> None:
-    if name not in ("auto", "cpu", "cuda") and not (name.startswith("cuda:") and name[5:].isdigit()):
-        raise ConfigError(f"config key '{key}' must be auto, cpu, cuda or cuda:N, got {name!r}")
+    if not isinstance(name, str) or (
+            name not in ("auto", "cpu", "cuda") and not (name.startswith("cuda:") and name[5:].isdigit())):
+        raise ConfigError(f"{_device_label(key)} must be auto, cpu, cuda or cuda:N, got {name!r}")
 
 
 def resolve_device(name: str, key: str) -> torch.device:
-    """The device a checked config value names (auto: cuda where available, else cpu); ConfigError
-    naming ``key`` when it asks for CUDA on a machine without."""
+    """The device ``name`` names (auto: cuda where available, else cpu); ConfigError naming ``key``
+    (a config key, or a ``--flag``) for a bad name or CUDA on a machine without."""
+    _check_device(name, key)
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"config key '{key}' is {name!r} but CUDA is not available; use cpu or auto")
+        raise ConfigError(f"{_device_label(key)} is {name!r} but CUDA is not available on this machine; use cpu "
+                          "or auto")
     return torch.device(name)
 
 
@@ -289,10 +296,14 @@ def prepare_dataset(config: Config, base: Path | None = None, progress: bool = T
 
 def split_files(folder: Path, split: str) -> list[Path]:
     """The trajectory files of ``split`` in a dataset folder, sorted; ConfigError when there are none."""
-    files = sorted((Path(folder) / split).glob("*.h5"))
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ConfigError(f"dataset folder {folder} does not exist (moved or deleted?); put the dataset back "
+                          f"there, or regenerate it with python -m datagen DATASET_CONFIG --out {folder.parent}")
+    files = sorted((folder / split).glob("*.h5"))
     if not files:
-        raise ConfigError(f"dataset folder {folder} has no {split} trajectories; its config must give "
-                          f"splits.{split} > 0")
+        raise ConfigError(f"dataset folder {folder} has no {split} trajectories (files {folder / split}/*.h5); "
+                          f"generate them (its dataset config must give splits.{split} > 0)")
     return files
 
 

@@ -231,7 +231,7 @@ def polygon(outer, holes: Sequence = (), size: float = 0.1, *, boundary_size: fl
 def wavy_channel(amplitude: float = 1.0, omega1: float = math.pi / 5, omega2: float = math.pi / 20,
                  width: float = 2.0, length: float = 20.0, size: float = 0.1, *,
                  inlet: float = 4.0, outlet: float = 1.0, boundary_size: float | None = None) -> Mesh:
-    """The wavy channel of UMLS-MPM §3.4 (eq. 36), triangulated.
+    """The wavy channel of UMLS-MPM §3.4 (UMLS eq. 36), triangulated.
 
     Left wall ``x_l(y) = amplitude * sin(omega1 y) sin(omega2 y)`` for ``0 < y <= length`` and
     ``x_l = 0`` otherwise; right wall ``x_r = x_l + width``. The channel runs from
@@ -241,7 +241,7 @@ def wavy_channel(amplitude: float = 1.0, omega1: float = math.pi / 5, omega2: fl
     _check_sizes(size, boundary_size)
     if width <= 0 or length <= 0 or inlet < 0 or outlet < 0:
         raise ValueError("wavy_channel needs width > 0, length > 0, inlet >= 0 and outlet >= 0")
-    def wall(y):  # UMLS-MPM eq. 36
+    def wall(y):  # UMLS eq. 36
         return np.where((y > 0) & (y <= length), amplitude * np.sin(omega1 * y) * np.sin(omega2 * y), 0.0)
 
     dense = np.concatenate([[-outlet], np.linspace(0.0, length, 4000), [length + inlet]])

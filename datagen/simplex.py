@@ -42,7 +42,7 @@ def name_first(indices: np.ndarray, what: str) -> str:
 def signed_measures(nodes: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """Signed length/area/volume of each simplex: ``det([x1-x0, ..., xd-x0]) / d!``.
 
-    nodes: (N, d), cells: (C, d+1) -> (C,). Positive for the reference orientation.
+    nodes: (N, d), cells: (C, d+1) -> (C,). Positive for positively oriented cells.
     """
     d = nodes.shape[1]
     corner = nodes[cells[:, 0]]

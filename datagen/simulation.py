@@ -46,8 +46,11 @@ TOP_LEVEL = {"scene", "params", "solver", "output", "seed"}
 SOLVER_DEFAULTS = {
     "kernel": "umls", "transfer": "flip", "dt": None, "cfl": 0.3, "device": "cpu", "dtype": "float64",
     "grid_spacing": None, "extra_layer": True, "layer_thickness": 1.0, "threads": None,
-    "reference": "eulerian", "epsilon": 0.01, "fraction": 0.01, "contact_margin": 1.0,
+    "reference": "eulerian", "epsilon": 0.01, "fraction": 0.01, "contact_margin": 1.0, "max_substeps": 100_000,
 }
+# Rough particle-steps per second of one CPU core (README, mpm_throughput.py), only for the time
+# an absurd configuration would take, stated when it is refused.
+_NOMINAL_RATE = {2: 5e5, 3: 2e5}
 OUTPUT_DEFAULTS = {"frames": None, "frame_interval": None, "step_diagnostics": False}
 _DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
@@ -105,6 +108,7 @@ def _check_solver(s: dict) -> None:
     _positive(s["grid_spacing"], "solver.grid_spacing", optional=True)
     _positive(s["layer_thickness"], "solver.layer_thickness")
     _positive(s["threads"], "solver.threads", optional=True, integer=True)
+    _positive(s["max_substeps"], "solver.max_substeps", integer=True)
     _positive(s["epsilon"], "solver.epsilon")
     if not (_positive(s["fraction"], "solver.fraction") <= 1.0):
         raise ConfigError(f"config key 'solver.fraction' must be in (0, 1], got {s['fraction']!r}")
@@ -145,6 +149,19 @@ def resolve_config(config) -> dict:
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ConfigError(f"config key 'seed' must be an integer, got {seed!r}")
     return {"scene": scene.NAME, "params": params, "solver": solver, "output": output, "seed": seed}
+
+
+def _check_substeps(solver: dict, interval: float, dt: float, source: str, particles: int, dim: int) -> None:
+    """ConfigError, before any stepping, when a frame would take more than solver.max_substeps steps."""
+    substeps = math.ceil(interval / dt - 1e-9)
+    if substeps <= solver["max_substeps"]:
+        return
+    hours = substeps * particles / _NOMINAL_RATE.get(dim, 5e5) / 3600
+    raise ConfigError(
+        f"{source} {dt:.3g} s makes {substeps:,} solver steps per {interval:g} s frame (limit solver.max_substeps: "
+        f"{solver['max_substeps']:,}), about {hours:.3g} hours per frame for {particles} particles on one core; "
+        "use a larger solver.dt (null takes the CFL step), fewer or shorter frames, or raise solver.max_substeps "
+        "if you mean it")
 
 
 # ----------------------------------------------------------------------------- model
@@ -271,9 +288,13 @@ def build_simulation(config) -> Simulation:
     config = resolve_config(config)
     scene_module = get_scene(config["scene"])
     scene = scene_module.build(config["params"])
-    model, state = build_solver_model(scene, config["solver"])
     interval = config["output"]["frame_interval"]
+    if config["solver"]["dt"] is not None:  # refused before the model is built
+        _check_substeps(config["solver"], interval, config["solver"]["dt"], "solver.dt", len(scene.x), scene.x.shape[1])
+    model, state = build_solver_model(scene, config["solver"])
     dt_max = config["solver"]["dt"] or cfl_time_step(model, state, config["solver"]["cfl"])
+    source = "solver.dt" if config["solver"]["dt"] else "the CFL time step (solver.cfl, material stiffness, mesh size)"
+    _check_substeps(config["solver"], interval, dt_max, source, len(scene.x), scene.x.shape[1])
     substeps = max(1, math.ceil(interval / dt_max - 1e-9))
     return Simulation(scene, model, state, config, interval / substeps, substeps)
 

@@ -151,3 +151,34 @@ def test_extends_cycle_and_bad_yaml(tmp_path):
     (tmp_path / "d.yaml").write_text(yaml.safe_dump(["a", "list"]))
     with pytest.raises(ConfigError, match=r"^dataset config .*d\.yaml must hold a mapping of keys to values, got list$"):
         load_dataset_config(tmp_path / "d.yaml")
+
+
+# ----------------------------------------------------------------------------- API: solver, hierarchy
+@pytest.mark.parametrize(("config", "words"), [
+    ({**TINY_BAR, "solver": {"dt": 1e-9}},
+     r"^solver.dt 1e-09 s makes 100,000,000 solver steps per 0.1 s frame \(limit solver.max_substeps: 100,000\), "
+     r"about [\d.]+ hours per frame for \d+ particles on one core; use a larger solver.dt"),
+    ({"scene": "disks", "params": {"E": 1e16}, "output": {"frames": 1}},
+     r"^the CFL time step \(solver.cfl, material stiffness, mesh size\) [\d.e-]+ s makes [\d,]+ solver steps"),
+    ({**TINY_BAR, "solver": {"max_substeps": 0}}, r"^config key 'solver.max_substeps' must be a positive integer"),
+])
+def test_absurd_solver_costs_are_refused_up_front(config, words):
+    with pytest.raises(ConfigError, match=words):
+        simulate(config)
+
+
+def test_a_lower_limit_is_obeyed_and_a_higher_one_lets_the_run_go():
+    frame = simulate({**TINY_BAR, "output": {"frames": 1}})
+    with pytest.raises(ConfigError, match=rf"makes {frame.substeps:,} solver steps .*limit solver.max_substeps: "
+                                          rf"{frame.substeps - 1:,}\)"):
+        simulate({**TINY_BAR, "solver": {"max_substeps": frame.substeps - 1}})
+    assert simulate({**TINY_BAR, "output": {"frames": 1}, "solver": {"max_substeps": frame.substeps}}).substeps \
+        == frame.substeps
+
+
+def test_a_hierarchy_cache_that_is_a_file(disk, tmp_path):
+    from bsms.graph import bistride_levels
+
+    (tmp_path / "cache").write_text("")
+    with pytest.raises(ConfigError, match=r"^cache_dir .*cache: .*cache is a file, not a folder; give a folder path$"):
+        bistride_levels(disk, cache_dir=tmp_path / "cache")

@@ -28,6 +28,7 @@ from bsms.graph.cache import FORMAT_VERSION, cache_path, hierarchy_key, read_npz
 from bsms.graph.pooling import bistride_pool, closed_rows, coarse_adjacency
 from bsms.graph.seeding import SEEDINGS, component_seeds
 from bsms.graph.transitions import Transition, transition_operators
+from datagen.config import output_folder
 from datagen.mesh import Mesh
 
 __all__ = ["BistrideLevel", "Hierarchy", "bistride_levels", "DEFAULT_MIN_NODES"]
@@ -285,7 +286,7 @@ def bistride_levels(mesh_or_edges, positions=None, levels="auto", seeding: str =
     options = {"levels": levels, "min_nodes": int(min_nodes) if levels == "auto" else None,
                "seeding": seeding, "seed": int(seed), "self_loops": bool(self_loops)}
     key = hierarchy_key(adjacency, positions if seeding == "close_center" else None, options)
-    path = cache_path(cache_dir, key) if cache_dir is not None else None
+    path = cache_path(output_folder(cache_dir, "cache_dir"), key) if cache_dir is not None else None
     if path is not None and path.is_file():
         try:
             cached = Hierarchy.load(path)

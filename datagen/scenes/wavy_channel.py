@@ -1,4 +1,4 @@
-"""An elastic body falling through a wavy channel (UMLS §3.4, eq. 36).
+"""An elastic body falling through a wavy channel (UMLS §3.4, UMLS eq. 36).
 
 The channel (``datagen.shapes.wavy_channel``) is the background mesh; its whole boundary is
 a separating wall with friction, closed at the bottom. The body (``shape``: ``disk``,
