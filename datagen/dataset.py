@@ -15,6 +15,7 @@ Layout (format version 1)::
     /frames/times        (T,) float64
     /frames/wall_time    (T,) float64    solver seconds spent reaching each frame (0 for frame 0)
     /diagnostics/<name>  (T, ...)        per-frame solver diagnostics
+    /fields/<name>       (...)           optional: a converted source dataset's own fields, exactly
 
 Files are written under a temporary name in the target folder and renamed when complete, so a
 crash never leaves a partial file under the final name. Object timestamps are off, so the same
@@ -88,6 +89,10 @@ def save(path, trajectory) -> Path:
             for name, array in sorted(t.diagnostics.items()):
                 array = np.asarray(array)
                 _put(diagnostics, name, array.astype("S") if array.dtype.kind == "U" else array)
+            if t.fields:
+                fields = f.create_group("fields", track_order=True)
+                for name, array in t.fields.items():
+                    _put(fields, name, array)
     return path
 
 
@@ -202,6 +207,7 @@ def load(path):
             arrays = _checked_arrays(f, path)
             attrs = dict(f.attrs)
             diagnostics = {name: f["diagnostics"][name][()] for name in f.get("diagnostics", {})}
+            fields = {name: f["fields"][name][()] for name in f["fields"]} if "fields" in f else None
     except DatasetError:
         raise
     except (OSError, KeyError, ValueError) as exc:
@@ -220,5 +226,5 @@ def load(path):
         n_particles=int(attrs["n_particles"]), frame_wall_times=arrays["frames/wall_time"],
         node_type=arrays["mesh/node_type"].astype(np.int64), body_id=arrays["mesh/body_id"].astype(np.int64),
         obstacle_nodes=arrays["obstacles/nodes"], obstacle_facets=arrays["obstacles/facets"],
-        kernel_rebuilds=int(attrs["kernel_rebuilds"]),
+        kernel_rebuilds=int(attrs["kernel_rebuilds"]), fields=fields,
     )

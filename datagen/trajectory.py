@@ -39,6 +39,8 @@ class Trajectory:
     node_type: (N,) NodeType codes of the tracked points (None: all free).
     body_id: (N,) body of each tracked point (None: one body). obstacle_nodes (M, d) and
     obstacle_facets (F, d): wall/container geometry a model can see (None: none).
+    fields: name -> array of a converted source dataset's own fields, kept exactly as the source
+    holds them (e.g. DeepMind's velocity, pressure, cells; None for the solver's runs).
     kernel_rebuilds: how many times kernels were computed: one per step in eulerian mode, one
     per reference update (the first included) in total/adaptive mode. diagnostics also hold
     kernel_rebuilds and contact_rebuilds (T,), cumulative counts at each frame.
@@ -61,3 +63,4 @@ class Trajectory:
     obstacle_nodes: np.ndarray | None = None
     obstacle_facets: np.ndarray | None = None
     kernel_rebuilds: int | None = None
+    fields: dict | None = None
