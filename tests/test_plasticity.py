@@ -10,7 +10,15 @@ import torch
 from datagen.mpm.plasticity import J2Softening, hencky_tau
 
 CLAY = dict(E=25e6, nu=0.3, density=2150.0, kappa_peak=40.82e3, kappa_residual=2.45e3, eta=5.0)
-torch.set_default_dtype(torch.float64)
+
+
+@pytest.fixture(autouse=True)
+def float64():
+    """These closed forms are checked in float64; the default dtype is restored afterwards."""
+    before = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(before)
 
 
 def _q(eps: torch.Tensor, m: J2Softening) -> torch.Tensor:
