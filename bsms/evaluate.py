@@ -31,7 +31,7 @@ from bsms import viz
 from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.data import Scenario
-from bsms.rollout import body_size, peak_memory_mb, rollout, rollout_metrics, summarize
+from bsms.rollout import body_size, peak_memory_mb, rollout_metrics, rollouts, summarize
 from bsms.run import EvaluateConfig, load_model, resolve_device, run_dataset_config, split_files
 from bsms.solver_runs import SOLVER_SETTINGS, frame_dt, free_nodes, run_solver
 from datagen.atomic import atomic_path
@@ -56,17 +56,23 @@ class _Results:
 
 
 # ----------------------------------------------------------------------------- learned models
-def _learned(model, config, trajectory, cache_dir, frames: int, bound: float, device) -> tuple[dict, object]:
-    scenario = Scenario.from_trajectory(trajectory, config.graph, cache_dir)
-    known = scenario.full(trajectory.positions[: frames + 1])
-    initial_velocity = scenario.full(trajectory.velocities[:1], 0.0)[0]
-    result = rollout(model, scenario, known[0], initial_velocity, frames, known, device=device)
-    predicted = result.positions[:, : scenario.n_body]
-    metrics = rollout_metrics(predicted, trajectory.positions[: frames + 1], free_nodes(trajectory),
-                              body_size(trajectory.mesh.nodes), bound)
-    metrics["seconds_per_step"] = result.seconds_per_step
-    metrics["seconds_per_sim_second"] = result.seconds_per_step / scenario.frame_dt
-    return metrics, result
+def _learned(model, config, trajectories, cache_dir, frames: list[int], options: EvaluateConfig,
+             device) -> list[tuple[dict, object]]:
+    """(metrics, rollout) of ``model`` on each of ``trajectories``, rolled out as one batch."""
+    scenarios = [Scenario.from_trajectory(t, config.graph, cache_dir) for t in trajectories]
+    known = [s.full(t.positions[: n + 1]) for s, t, n in zip(scenarios, trajectories, frames, strict=True)]
+    initial = [s.full(t.velocities[:1], 0.0)[0] for s, t in zip(scenarios, trajectories, strict=True)]
+    results = rollouts(model, scenarios, [k[0] for k in known], initial, frames, known, device=device)
+    out = []
+    for scenario, trajectory, n, result in zip(scenarios, trajectories, frames, results, strict=True):
+        predicted = result.positions[:, : scenario.n_body]
+        metrics = rollout_metrics(predicted, trajectory.positions[: n + 1], free_nodes(trajectory),
+                                  body_size(trajectory.mesh.nodes), options.bound)
+        metrics["seconds_per_step"] = result.seconds_per_step
+        metrics["seconds_per_sim_second"] = result.seconds_per_step / scenario.frame_dt
+        metrics["graph_nodes_ratio"] = float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body
+        out.append((metrics, result))
+    return out
 
 
 def _frames(trajectory, options: EvaluateConfig) -> int:
@@ -104,16 +110,20 @@ def _methods(model, config, compare) -> list[tuple[str, object, object]]:
 
 def _roll_out(results: _Results, methods, trajectories, cache_dir: Path, options: EvaluateConfig, out: Path,
               progress: bool) -> None:
-    """Learned rollouts first, so that the process's peak memory (CPU) is theirs, not the solver's."""
+    """Learned rollouts first, so that the process's peak memory (CPU) is theirs, not the solver's;
+    ``options.batch`` trajectories at a time, as one batch."""
     device = resolve_device(options.device, "evaluate.device")
-    for k, trajectory in enumerate(tqdm(trajectories, desc="rollouts", unit="traj", disable=not progress)):
-        frames = _frames(trajectory, options)
+    starts = range(0, len(trajectories), options.batch)
+    for first in tqdm(starts, desc="rollout batches", unit="batch", disable=not progress):
+        batch = trajectories[first: first + options.batch]
+        frames = [_frames(trajectory, options) for trajectory in batch]
         for label, model, config in methods:
-            metrics, result = _learned(model, config, trajectory, cache_dir, frames, options.bound, device)
-            results.learned[label].append(metrics)
+            for k, (metrics, result) in enumerate(_learned(model, config, batch, cache_dir, frames, options, device),
+                                                  start=first):
+                results.learned[label].append(metrics)
+                if label == methods[0][0] and k < options.gifs:
+                    results.pictures.append(_pictures(out, k, trajectories[k], result, frames[k - first]))
             results.memory[label] = peak_memory_mb(device)
-            if label == methods[0][0] and k < options.gifs:
-                results.pictures.append(_pictures(out, k, trajectory, result, frames))
 
 
 def _run_solvers(results: _Results, trajectories, options: EvaluateConfig, progress: bool) -> None:

@@ -16,6 +16,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,7 @@ from bsms import viz
 from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.data import NodeType, Scenario
-from bsms.rollout import DEFAULT_BOUND, body_size, rollout, rollout_metrics
+from bsms.rollout import DEFAULT_BOUND, body_size, rollout_metrics, rollouts
 from bsms.run import load_model, resolve_device, run_dataset_config
 from datagen import simulate
 from datagen.atomic import atomic_path
@@ -72,12 +73,87 @@ def parse_overrides(items) -> dict:
     return out
 
 
+@dataclass
+class _Placement:
+    """Meshes placed together in the family's setting: the simulate() config, the scene, its
+    scenario and initial state (all scenario nodes), frames and frame interval."""
+
+    paths: list[Path]
+    sim_config: dict
+    resolved: dict
+    scene: object
+    scenario: Scenario
+    x0: np.ndarray
+    v0: np.ndarray
+    steps: int
+    frame_dt: float
+
+
+def _place(paths: list[Path], config, dconfig: dict, overrides: dict | None, steps: int | None) -> _Placement:
+    sim_config = place(dconfig["family"], [str(p) for p in paths], dconfig, overrides or {})
+    if steps is not None:
+        sim_config.setdefault("output", {})["frames"] = int(steps)
+    resolved = resolve_config(sim_config)
+    scene = get_scene(resolved["scene"]).build(resolved["params"])
+    frame_dt = float(resolved["output"]["frame_interval"])
+    scenario = Scenario.build(
+        scene.body, config.graph, frame_dt=frame_dt, node_type=scene.node_type, body_id=scene.body_id,
+        obstacle_nodes=scene.obstacle_nodes, obstacle_facets=scene.obstacle_facets, params=resolved["params"],
+        source=f"the scene of {', '.join(map(str, paths))}",
+    )
+    x0 = scenario.full(scene.x[scene.tracked])
+    v0 = scenario.full(scene.v[scene.tracked][None], 0.0)[0]
+    return _Placement(paths, sim_config, resolved, scene, scenario, x0, v0, int(resolved["output"]["frames"]),
+                      frame_dt)
+
+
+def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder: Path, solver: bool,
+             bound: float) -> dict:
+    """What one rollout did (and, with ``solver``, its error and speed-up against the MPM solver);
+    writes its outputs and summary.json into ``folder``."""
+    scenario = placed.scenario
+    predicted = result.positions[:, : scenario.n_body]
+    summary = {
+        "run": str(run_dir), "meshes": [str(p) for p in placed.paths], "nodes": nodes,
+        "graph_nodes_per_level": [int(round(n)) for n in np.mean(result.graph_nodes, axis=0)],
+        "graph_nodes_ratio": float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body,
+        "steps": len(predicted) - 1, "frame_dt": placed.frame_dt, "finite": result.finite,
+        "seconds_per_step": result.seconds_per_step, "scene": placed.resolved["scene"],
+        "params": placed.resolved["params"], "out": str(folder),
+    }
+    truth = None
+    if solver:
+        start = time.perf_counter()
+        trajectory = simulate(placed.sim_config)
+        summary["solver_seconds"] = time.perf_counter() - start
+        summary["solver_seconds_per_step"] = trajectory.wall_time / placed.steps
+        truth = trajectory.positions
+        free = scenario.node_type[: scenario.n_body] == NodeType.FREE
+        metrics = rollout_metrics(predicted, truth, free, body_size(placed.scene.body.nodes), bound)
+        summary.update({k: metrics[k] for k in ("rmse_1", "rmse_50", "rmse_all", "rel_all", "unstable_step")})
+        summary["speedup"] = summary["solver_seconds_per_step"] / result.seconds_per_step
+    folder.mkdir(parents=True, exist_ok=True)
+    _write_outputs(folder, placed.scene, predicted, truth, placed.frame_dt)
+    with atomic_path(folder / "summary.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1, default=float))
+    return summary
+
+
+def _subfolders(folder: Path, paths: list[Path]) -> list[Path]:
+    """One output folder per mesh inside ``folder``: its name, numbered where names repeat."""
+    stems = [p.stem for p in paths]
+    return [folder / (stem if stems.count(stem) == 1 else f"{stem}_{k}") for k, stem in enumerate(stems)]
+
+
 def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None = None, solver: bool = False,
           out=None, device: str = "cpu", which: str = "best", progress: bool = True,
-          bound: float = DEFAULT_BOUND) -> dict:
-    """Roll the run's model out on ``meshes`` (paths) placed in its family's setting.
+          bound: float = DEFAULT_BOUND, separately: bool = False) -> dict:
+    """Roll the run's model out on ``meshes`` (paths) placed in its family's setting: together in
+    one scene, or with ``separately`` each alone in its own scene, all rolled out as one batch
+    (outputs in one subfolder per mesh).
 
-    Returns the summary written to ``summary.json`` (with ``out``, the output folder).
+    Returns the summary written to ``summary.json`` (with ``out``, the output folder); with
+    ``separately``, {"run", "out", "rollouts": the summary of each mesh}.
     """
     run_dir = Path(run_dir)
     model, config, state = load_model(run_dir, which)
@@ -88,42 +164,18 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     resolve_device(device, "--device")  # checked, with the output folder, before any work
     folder = Path(out) if out is not None else run_dir / "infer" / "_".join(p.stem for p in paths)
     output_folder(folder, "--out" if out is not None else "the output folder (give another with --out)")
-    bodies = [read_mesh(p, dim, run_dir) for p in paths]
+    nodes = {p: read_mesh(p, dim, run_dir).n_nodes for p in paths}
     dconfig = run_dataset_config(run_dir, config)
-    sim_config = place(dconfig["family"], [str(p) for p in paths], dconfig, overrides or {})
-    if steps is not None:
-        sim_config.setdefault("output", {})["frames"] = int(steps)
-    resolved = resolve_config(sim_config)
-    scene = get_scene(resolved["scene"]).build(resolved["params"])
-    steps = int(resolved["output"]["frames"])
-    frame_dt = float(resolved["output"]["frame_interval"])
-    scenario = Scenario.build(
-        scene.body, config.graph, frame_dt=frame_dt, node_type=scene.node_type, body_id=scene.body_id,
-        obstacle_nodes=scene.obstacle_nodes, obstacle_facets=scene.obstacle_facets, params=resolved["params"],
-        source=f"the scene of {', '.join(map(str, paths))}",
-    )
-    x0 = scenario.full(scene.x[scene.tracked])
-    v0 = scenario.full(scene.v[scene.tracked][None], 0.0)[0]
-    result = rollout(model, scenario, x0, v0, steps, device=device, progress=progress)
-    predicted = result.positions[:, : scenario.n_body]
-    summary = {
-        "run": str(run_dir), "meshes": [str(p) for p in paths], "nodes": [b.n_nodes for b in bodies],
-        "graph_nodes_per_level": [int(n) for n in scenario.hierarchy.node_counts], "steps": len(predicted) - 1,
-        "frame_dt": frame_dt, "finite": result.finite, "seconds_per_step": result.seconds_per_step,
-        "scene": resolved["scene"], "params": resolved["params"], "out": str(folder),
-    }
-    truth = None
-    if solver:
-        start = time.perf_counter()
-        trajectory = simulate(sim_config)
-        summary["solver_seconds"] = time.perf_counter() - start
-        summary["solver_seconds_per_step"] = trajectory.wall_time / steps
-        truth = trajectory.positions
-        free = scenario.node_type[: scenario.n_body] == NodeType.FREE
-        metrics = rollout_metrics(predicted, truth, free, body_size(scene.body.nodes), bound)
-        summary.update({k: metrics[k] for k in ("rmse_1", "rmse_50", "rmse_all", "rel_all", "unstable_step")})
-        summary["speedup"] = summary["solver_seconds_per_step"] / result.seconds_per_step
-    _write_outputs(folder, scene, predicted, truth, frame_dt)
+    groups = [[p] for p in paths] if separately else [paths]
+    placed = [_place(group, config, dconfig, overrides, steps) for group in groups]
+    results = rollouts(model, [p.scenario for p in placed], [p.x0 for p in placed], [p.v0 for p in placed],
+                       [p.steps for p in placed], device=device, progress=progress)
+    folders = _subfolders(folder, paths) if separately else [folder]
+    summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound)
+                 for p, result, where in zip(placed, results, folders, strict=True)]
+    if not separately:
+        return summaries[0]
+    summary = {"run": str(run_dir), "out": str(folder), "rollouts": summaries}
     with atomic_path(folder / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=float))
     return summary
@@ -153,6 +205,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=None, help="output folder (default: RUN_DIR/infer/<mesh name>)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
     parser.add_argument("--checkpoint", default="best", choices=["best", "latest"], help="which checkpoint")
+    parser.add_argument("--separately", action="store_true",
+                        help="each mesh alone in its own scene, all rolled out as one batch (one subfolder each)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     if args.steps is not None and args.steps < 1:
@@ -161,10 +215,18 @@ def main(argv=None) -> int:
     try:
         summary = infer(args.run_dir, args.mesh, overrides=parse_overrides(args.scene), steps=args.steps,
                         solver=args.solver, out=args.out, device=args.device, which=args.checkpoint,
-                        progress=not args.quiet)
+                        progress=not args.quiet, separately=args.separately)
     except (InferError, CheckpointError, ConfigError, DatasetError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    for one in summary.get("rollouts", [summary]):
+        print(_describe(one))
+        print(f"outputs in {one['out']}: prediction.xdmf (ParaView), prediction.gif, summary.json")
+    return 0
+
+
+def _describe(summary: dict) -> str:
+    """One line on one rollout's summary."""
     line = (f"{summary['steps']} steps on {sum(summary['nodes'])} nodes "
             f"({summary['seconds_per_step'] * 1e3:.1f} ms per step; levels {summary['graph_nodes_per_level']})")
     if "rmse_all" in summary:
@@ -172,9 +234,7 @@ def main(argv=None) -> int:
                  f"size), speed-up {summary['speedup']:.3g}x")
     if not summary["finite"]:
         line += "; the rollout went non-finite"
-    print(line)
-    print(f"outputs in {summary['out']}: prediction.xdmf (ParaView), prediction.gif, summary.json")
-    return 0
+    return line
 
 
 if __name__ == "__main__":

@@ -23,9 +23,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from bsms.data import NodeType, Scenario
+from bsms.data import Scenario
+from bsms.level_graph import level_graph
+from bsms.models.precision import network_dtype
 
-__all__ = ["Rollout", "rollout", "rollout_metrics", "summarize", "body_size", "peak_memory_mb", "DEFAULT_BOUND"]
+__all__ = [
+    "Rollout", "rollout", "rollouts", "rollout_metrics", "summarize", "body_size", "peak_memory_mb", "DEFAULT_BOUND",
+]
 
 DEFAULT_BOUND = 0.5  # relative error (of the body size) at which a rollout counts as unstable
 
@@ -42,14 +46,18 @@ def peak_memory_mb(device: torch.device | str = "cpu") -> float:
 @dataclass
 class Rollout:
     """positions, velocities: (T, N, d) of all scenario nodes, frame 0 included; step_seconds:
-    wall time of each model step (graph building, contacts and the network; (T-1,)); finite:
-    whether the whole rollout stayed finite (it stops at the first non-finite step)."""
+    wall time of each model step (graph building, contacts and the network; (T-1,)), for a
+    rollout of a batch its share of the batch's step (the step's time over the rollouts in it);
+    finite: whether the whole rollout stayed finite (it stops at the first non-finite step);
+    graph_nodes: (T-1, L) node count of each level of each step's graph (body and obstacle nodes
+    in reach)."""
 
     positions: np.ndarray
     velocities: np.ndarray
     step_seconds: np.ndarray
     finite: bool = True
     extra: dict = field(default_factory=dict)
+    graph_nodes: np.ndarray = field(default_factory=lambda: np.zeros((0, 1), np.int64))
 
     @property
     def seconds_per_step(self) -> float:
@@ -61,10 +69,112 @@ def _synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+@dataclass
+class _Track:
+    """One rollout of a batch while it runs: its scenario, state per frame and what it measured."""
+
+    scenario: Scenario
+    positions: np.ndarray
+    velocities: np.ndarray
+    known: np.ndarray | None
+    steps: int
+    seconds: list = field(default_factory=list)
+    graph_nodes: list = field(default_factory=list)
+    finite: bool = True
+
+    def running(self, t: int) -> bool:
+        return self.finite and t < self.steps
+
+    def advance(self, t: int, change: np.ndarray) -> None:
+        """Frame t + 1 from frame t and the velocity change (N, d) of every scenario node."""
+        kinematic, dt = self.scenario.kinematic, self.scenario.frame_dt
+        velocity = self.velocities[t] + change
+        position = self.positions[t] + dt * velocity
+        if self.known is not None:
+            position[kinematic] = self.known[t + 1][kinematic]
+            velocity[kinematic] = (self.known[t + 1][kinematic] - self.positions[t][kinematic]) / dt
+        else:
+            position[kinematic], velocity[kinematic] = self.positions[t][kinematic], 0.0
+        self.positions[t + 1], self.velocities[t + 1] = position, velocity
+        if not (np.isfinite(position).all() and np.isfinite(velocity).all()):
+            self.finite = False
+            self.steps = t + 1
+
+    def result(self) -> Rollout:
+        n = self.steps + 1
+        levels = self.scenario.levels.n_levels
+        return Rollout(self.positions[:n], self.velocities[:n], np.asarray(self.seconds), self.finite,
+                       graph_nodes=np.array(self.graph_nodes, np.int64).reshape(len(self.graph_nodes), levels))
+
+
+def _track(scenario: Scenario, x0: np.ndarray, v0: np.ndarray, steps: int, known) -> _Track:
+    if known is not None and len(known) < steps + 1:
+        raise ValueError(f"known_positions has {len(known)} frames; a rollout of {steps} steps needs {steps + 1}")
+    positions = np.empty((steps + 1, *np.shape(x0)))
+    velocities = np.empty_like(positions)
+    positions[0], velocities[0] = x0, v0
+    return _Track(scenario, positions, velocities, known, int(steps))
+
+
+def _changes(model, tracks: list[_Track], t: int, device: torch.device, precision: str) -> list[np.ndarray]:
+    """One model call on the graphs of frame t of ``tracks`` as one batch -> (N_k, d) velocity
+    changes of every scenario node (zero on nodes outside the frame's graph)."""
+    frames = [k.scenario.frame(k.positions[t], k.velocities[t]) for k in tracks]
+    change = model.velocity_change(level_graph(frames).to(device), precision=precision).double().cpu().numpy()
+    out, start = [], 0
+    for k, frame in zip(tracks, frames, strict=True):
+        full = np.zeros_like(k.positions[t])
+        full[frame.nodes["scenario_nodes"]] = change[start: start + frame.n_nodes]
+        start += frame.n_nodes
+        k.graph_nodes.append([len(level.nodes) for level in frame.levels])
+        out.append(full)
+    return out
+
+
 @torch.no_grad()
+def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_velocities: list, steps,
+             known_positions: list | None = None, device="cpu", progress: bool = False,
+             warmup: int = 1, precision: str = "auto") -> list[Rollout]:
+    """Roll ``model`` out on several scenarios at once: every step is one model call on their
+    graphs joined into one (:func:`~bsms.level_graph.level_graph`), and each rollout equals its
+    rollout alone to float32 round-off. Arguments as :func:`rollout`, one per scenario
+    (``steps``: an int or one per scenario; ``known_positions``: None, or one array or None per
+    scenario). A rollout that ends (its steps, or a non-finite state) leaves the batch; the
+    others go on. Each rollout's ``step_seconds`` are its share of the batch's steps.
+    """
+    device = torch.device(device)
+    network_dtype(precision, device)  # a bad precision fails before any work
+    model = model.to(device).eval()
+    n = len(scenarios)
+    steps = [steps] * n if np.ndim(steps) == 0 else list(steps)
+    known_positions = [None] * n if known_positions is None else list(known_positions)
+    if not n or not len(initial_positions) == len(initial_velocities) == len(steps) == len(known_positions) == n:
+        raise ValueError(f"give one initial state, step count and known_positions (or None) per scenario; got "
+                         f"{n} scenarios, {len(initial_positions)} initial positions, {len(initial_velocities)} "
+                         f"initial velocities, {len(steps)} step counts, {len(known_positions)} known_positions")
+    tracks = [_track(*args) for args in zip(scenarios, initial_positions, initial_velocities, steps, known_positions,
+                                            strict=True)]
+    for _ in range(warmup):
+        _changes(model, tracks, 0, device, precision)
+        for k in tracks:
+            k.graph_nodes.clear()
+    for t in tqdm(range(max(steps)), desc="rollout", unit="step", disable=not progress):
+        running = [k for k in tracks if k.running(t)]
+        if not running:
+            break
+        start = time.perf_counter()
+        changes = _changes(model, running, t, device, precision)
+        _synchronize(device)
+        share = (time.perf_counter() - start) / len(running)
+        for k, change in zip(running, changes, strict=True):
+            k.seconds.append(share)
+            k.advance(t, change)
+    return [k.result() for k in tracks]
+
+
 def rollout(model, scenario: Scenario, initial_positions: np.ndarray, initial_velocity: np.ndarray, steps: int,
             known_positions: np.ndarray | None = None, device="cpu", progress: bool = False,
-            warmup: int = 1) -> Rollout:
+            warmup: int = 1, precision: str = "auto") -> Rollout:
     """Roll ``model`` out for ``steps`` steps from frame 0.
 
     initial_positions, initial_velocity: (N, d) of all scenario nodes at frame 0.
@@ -72,40 +182,11 @@ def rollout(model, scenario: Scenario, initial_positions: np.ndarray, initial_ve
         prescribe those nodes' motion; None keeps kinematic nodes where they start.
     warmup: untimed model calls on the first state before the timed steps (one-off start-up
         costs such as allocator growth and kernel selection are not per-step costs).
+    precision: the core network's number format, ``auto`` (bfloat16 where the hardware has
+        it), ``bf16`` or ``f32`` (:mod:`bsms.models.precision`).
     """
-    device = torch.device(device)
-    model = model.to(device).eval()
-    kinematic = scenario.node_type != NodeType.FREE
-    if known_positions is not None and len(known_positions) < steps + 1:
-        raise ValueError(f"known_positions has {len(known_positions)} frames; a rollout of {steps} steps needs "
-                         f"{steps + 1}")
-    dt = scenario.frame_dt
-    positions = np.empty((steps + 1, *initial_positions.shape))
-    velocities = np.empty_like(positions)
-    positions[0], velocities[0] = initial_positions, initial_velocity
-    seconds = []
-    finite = True
-    for _ in range(warmup):
-        model.velocity_change(scenario.graph(positions[0], velocities[0]).to(device))
-    for t in tqdm(range(steps), desc="rollout", unit="step", disable=not progress):
-        start = time.perf_counter()
-        graph = scenario.graph(positions[t], velocities[t]).to(device)
-        change = model.velocity_change(graph).double().cpu().numpy()
-        _synchronize(device)
-        seconds.append(time.perf_counter() - start)
-        velocity = velocities[t] + change
-        position = positions[t] + dt * velocity
-        if known_positions is not None:
-            position[kinematic] = known_positions[t + 1][kinematic]
-            velocity[kinematic] = (known_positions[t + 1][kinematic] - positions[t][kinematic]) / dt
-        else:
-            position[kinematic], velocity[kinematic] = positions[t][kinematic], 0.0
-        positions[t + 1], velocities[t + 1] = position, velocity
-        if not (np.isfinite(position).all() and np.isfinite(velocity).all()):
-            finite = False
-            positions, velocities = positions[: t + 2], velocities[: t + 2]
-            break
-    return Rollout(positions, velocities, np.asarray(seconds), finite)
+    return rollouts(model, [scenario], [initial_positions], [initial_velocity], [steps], [known_positions],
+                    device=device, progress=progress, warmup=warmup, precision=precision)[0]
 
 
 def body_size(rest_positions: np.ndarray) -> float:
@@ -147,7 +228,7 @@ def summarize(metrics: list[dict]) -> dict:
     """Mean and std over trajectories of each scalar metric; count of unstable rollouts."""
     out = {"trajectories": len(metrics), "unstable": sum(m["unstable_step"] is not None for m in metrics)}
     for key in ("rmse_1", "rmse_50", "rmse_all", "rel_1", "rel_50", "rel_all", "seconds_per_step",
-                "seconds_per_sim_second"):
+                "seconds_per_sim_second", "graph_nodes_ratio"):
         values = np.array([m[key] for m in metrics if key in m], dtype=float)
         if len(values):
             out[key] = float(np.mean(values))

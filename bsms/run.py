@@ -20,7 +20,7 @@ import yaml
 
 from bsms.checkpoint import CheckpointError, load_checkpoint
 from bsms.config import ConfigError, apply_overrides, build, load, to_dict
-from bsms.data import GraphOptions, NoiseOptions
+from bsms.data import GraphOptions, NoiseOptions, saved_graph_options
 from bsms.models.simulator import LearnedSimulator
 from bsms.rollout import DEFAULT_BOUND
 from bsms.solver_runs import SOLVER_SETTINGS
@@ -97,7 +97,8 @@ class TrainConfig:
     """steps and batch_size (graphs per step, over all processes); normalizer_steps: batches
     the normalisers learn from before they freeze; log/valid/checkpoint cadence in steps;
     valid_samples: validation samples (evenly spread over the split); device: auto, cpu, cuda
-    or cuda:N; amp: bfloat16 autocast (CUDA only); workers: data-loading processes."""
+    or cuda:N; amp: bfloat16 autocast of the network (CUDA, or CPUs with AMX-BF16 or AVX512-BF16;
+    :mod:`bsms.models.precision`); workers: data-loading processes."""
 
     steps: int = 10_000
     batch_size: int = 2
@@ -130,7 +131,9 @@ class EvaluateConfig:
     gifs: rollout GIFs to draw; device: auto, cpu or cuda[:N]; threads: CPU threads of the
     learned models while timed (null: torch's default). The solver runs with the threads its
     dataset config gives (the family configs use 1), so the default of 1 times both alike;
-    small graphs also run fastest on one thread.
+    small graphs also run fastest on one thread. batch: trajectories rolled out together, one
+    model call per step on the batch of their graphs (a rollout's time per step is its share
+    of the batch's step; 1: each rollout alone).
     """
 
     enabled: bool = True
@@ -142,12 +145,14 @@ class EvaluateConfig:
     gifs: int = 2
     device: str = "auto"
     threads: int | None = 1
+    batch: int = 8
 
     def validate(self, prefix: str) -> None:
         if self.split not in ("train", "valid", "test"):
             raise ConfigError(f"config key '{prefix}.split' must be train, valid or test, got {self.split!r}")
         _at_least(self, prefix, 1, ("trajectories", "steps", "threads"), optional=True)
         _at_least(self, prefix, 0, ("gifs",))
+        _at_least(self, prefix, 1, ("batch",))
         if self.bound <= 0:
             raise ConfigError(f"config key '{prefix}.bound' must be positive, got {self.bound}")
         # runs saved before the setting was renamed list 'reference'
@@ -323,7 +328,7 @@ def load_model(source, which: str = "best", device="cpu") -> tuple[LearnedSimula
     path = path if path.is_file() else find_checkpoint(path, which)
     state = load_checkpoint(path)
     try:
-        config = build(Config, state["config"])
+        config = build(Config, {**state["config"], "graph": saved_graph_options(state["config"].get("graph"))})
     except ConfigError as exc:
         raise CheckpointError(f"checkpoint {path} holds a config this bsms cannot read ({exc})") from None
     model = build_model(config, int(state["dim"]))

@@ -29,12 +29,14 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.distributed as dist
+import yaml
 from torch_geometric.data import Batch
 from tqdm import tqdm
 
 from bsms.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_checkpoint
 from bsms.config import ConfigError, load, to_dict
 from bsms.data import FrameDataset
+from bsms.models.precision import cpu_has_bf16
 from bsms.run import (
     Config,
     build_model,
@@ -51,7 +53,8 @@ __all__ = ["Trainer", "TrainingDiverged", "lr_factor", "METRICS_FIELDS"]
 METRICS_FIELDS = ("step", "loss", "lr", "seconds", "samples_per_s", "valid_rmse")
 
 # These may change when a run is resumed; anything else must match the run's saved config.
-_OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.workers", "dataset.generate"}
+_OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.workers", "dataset.generate",
+                "evaluate.batch"}
 
 
 def _flat(data: dict, prefix: str = "") -> dict:
@@ -196,6 +199,11 @@ class Trainer:
             return dist.get_rank(), dist.get_world_size()
         return 0, 1
 
+    @property
+    def _precision(self) -> str:
+        """The core network's number format (``train.amp``: bfloat16 autocast)."""
+        return "bf16" if self.config.train.amp else "f32"
+
     def _device(self) -> torch.device:
         t = self.config.train
         device = resolve_device(t.device, "train.device")
@@ -204,9 +212,10 @@ class Trainer:
                 local = int(os.environ.get("LOCAL_RANK", "0")) if self.world > 1 else torch.cuda.current_device()
                 device = torch.device("cuda", local)
             torch.cuda.set_device(device)
-        elif t.amp:
-            raise ConfigError("config key 'train.amp' needs a CUDA device (bfloat16 autocast); set train.amp: false "
-                              "on CPU")
+        elif t.amp and not cpu_has_bf16():
+            raise ConfigError("config key 'train.amp' needs a CUDA device or a CPU with bfloat16 instructions "
+                              "(AMX-BF16 or AVX512-BF16) for bfloat16 autocast, and this CPU has neither; set "
+                              "train.amp: false")
         if t.batch_size < self.world:
             raise ConfigError(f"config key 'train.batch_size' ({t.batch_size}) must be at least the "
                               f"number of processes ({self.world})")
@@ -237,8 +246,11 @@ class Trainer:
         changed = sorted(k for k in set(saved) | set(now) if k not in _OPERATIONAL and saved.get(k) != now.get(k))
         if changed:
             key = changed[0]
-            raise ConfigError(f"cannot resume {self.run_dir}: config key '{key}' changed from {saved.get(key)!r} to "
-                              f"{now.get(key)!r}; resume with the run's own config.yaml or start a new run name")
+            was = "absent (the run predates it)" if key not in saved else repr(saved[key])
+            keep = yaml.safe_dump(saved.get(key), default_flow_style=True).strip().removesuffix("...").strip()
+            raise ConfigError(f"cannot resume {self.run_dir}: config key '{key}' was {was} and is now "
+                              f"{now.get(key)!r}; resume with {key}={keep} (what the run was trained with), or start "
+                              "a new run name")
 
     def _restore(self, checkpoint: dict) -> None:
         try:
@@ -308,8 +320,8 @@ class Trainer:
         if self.world > 1:
             dist.all_reduce(count)
         accumulate = self.step < self.config.train.normalizer_steps
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.train.amp):
-            loss = self.model.loss(batch, accumulate=accumulate, reduction="sum") / count.clamp(min=1).float()
+        loss = self.model.loss(batch, accumulate=accumulate, reduction="sum", precision=self._precision)
+        loss = loss / count.clamp(min=1).float()
         self.optimizer.zero_grad(set_to_none=False)
         loss.backward()
         loss = loss.detach()
@@ -362,8 +374,7 @@ class Trainer:
         size = self.config.train.batch_size
         for start in range(0, len(picks), size):
             batch = Batch.from_data_list([self.valid_set[int(i)] for i in picks[start:start + size]]).to(self.device)
-            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.train.amp):
-                change = self.model.output_normalizer.inverse(self.model(batch).float())
+            change = self.model.output_normalizer.inverse(self.model(batch, precision=self._precision))
             error = (change - batch.target) * batch.frame_dt[:, None]
             squared += float(error[batch.loss_mask].square().sum())
             count += int(batch.loss_mask.sum())

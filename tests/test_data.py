@@ -6,8 +6,9 @@ import torch
 from graph_meshes import side_by_side
 from torch_geometric.data import Batch
 
-from bsms.data import LevelGraph, MeshLevels, NodeType, frame_graph
+from bsms.data import LevelGraph, NodeType
 from bsms.graph import bistride_levels, coarsen_contacts, contact_edges
+from bsms.level_graph import frame_graph, hierarchy_levels
 from bsms.models.simulator import LearnedSimulator
 from datagen import shapes
 
@@ -31,7 +32,7 @@ def sample(mesh, body_id, seed: int, contact_radius: float) -> LevelGraph:
     contacts = coarsen_contacts(hierarchy, contact_edges(pos, body_id, contact_radius, exclude=mesh.edges,
                                                          self_contact=False))
     return frame_graph(
-        MeshLevels.from_hierarchy(hierarchy), rest_pos=mesh.nodes, pos=pos,
+        hierarchy_levels(hierarchy), rest_pos=mesh.nodes, pos=pos,
         velocity=rng.normal(size=mesh.nodes.shape), node_type=node_type,
         target=rng.normal(size=mesh.nodes.shape), contacts=contacts,
     )
@@ -126,7 +127,7 @@ def test_bad_inputs():
     with pytest.raises(ValueError, match="unknown model 'gcn'; choose one of bsms_gnn, meshgraphnets"):
         LearnedSimulator("gcn", 2)
     mesh = shapes.disk(1.0, 0.3)
-    levels = MeshLevels.from_hierarchy(bistride_levels(mesh, mesh.nodes, levels=2))
+    levels = hierarchy_levels(bistride_levels(mesh, mesh.nodes, levels=2))
     with pytest.raises(ValueError, match="must all be \\(N, d\\) with N = "):
         frame_graph(levels, rest_pos=mesh.nodes, pos=mesh.nodes[:-1], velocity=mesh.nodes,
                     node_type=np.zeros(mesh.n_nodes, dtype=int))
@@ -138,7 +139,7 @@ def test_bad_inputs():
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_obstacle_facets_are_subdivided_without_changing_the_geometry(dim):
-    from bsms.data import subdivide_facets
+    from bsms.graph.obstacles import subdivide_facets
     from datagen.scenes.base import outline
 
     domain = shapes.rectangle(1.0, 0.6, 0.3) if dim == 2 else shapes.box((1.0, 0.6, 0.8), 0.5)

@@ -82,7 +82,8 @@ def test_mesh_four_times_larger_than_any_in_training(run_2d, tmp_path):
                  "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["nodes"] == [mesh.n_nodes] and summary["finite"]
-    assert len(summary["graph_nodes_per_level"]) == 3 and summary["graph_nodes_per_level"][0] > mesh.n_nodes
+    assert len(summary["graph_nodes_per_level"]) == 3
+    assert mesh.n_nodes <= summary["graph_nodes_per_level"][0] <= 1.2 * mesh.n_nodes, "walls only where in reach"
 
 
 def test_3d_mesh_file(run_3d, tmp_path):
@@ -93,6 +94,40 @@ def test_3d_mesh_file(run_3d, tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == 2 and summary["finite"]
     check_outputs(out, summary, 2)
+
+
+def test_meshes_rolled_out_separately_as_one_batch(run_2d, tmp_path):
+    from bsms.infer import infer
+
+    run, _ = run_2d
+    meshes = [write(shapes.annulus(0.5, 1.0, 0.25), tmp_path / "ring.vtu"), write(shapes.disk(1.0, 0.3), tmp_path / "a.msh")]
+    summary = infer(run, meshes, steps=2, out=tmp_path / "apart", separately=True, progress=False)
+    assert [r["meshes"] for r in summary["rollouts"]] == [[str(m)] for m in meshes]
+    for rollout_summary, name in zip(summary["rollouts"], ("ring", "a"), strict=True):
+        assert rollout_summary["out"] == str(tmp_path / "apart" / name) and rollout_summary["steps"] == 2
+        assert json.loads((tmp_path / "apart" / name / "summary.json").read_text())["nodes"] == rollout_summary["nodes"]
+    together = infer(run, meshes, steps=2, out=tmp_path / "together", progress=False)
+    assert together["nodes"] == [r["nodes"][0] for r in summary["rollouts"]], "one scene of both meshes"
+    from bsms.infer import main
+
+    assert main([str(run), "--mesh", str(meshes[0]), "--mesh", str(meshes[1]), "--steps", "2", "--separately",
+                 "--out", str(tmp_path / "cli"), "--quiet"]) == 0
+    assert all((tmp_path / "cli" / name / "summary.json").is_file() for name in ("ring", "a"))
+
+
+def test_runs_saved_before_lean_obstacles_load_with_every_obstacle_node(run_2d, tmp_path):
+    import torch
+
+    from bsms.checkpoint import load_checkpoint
+    from bsms.run import find_checkpoint, load_model
+
+    run, _ = run_2d
+    state = load_checkpoint(find_checkpoint(run))
+    assert state["config"]["graph"]["obstacle_margin"] == 0.0, "new runs are lean"
+    del state["config"]["graph"]["obstacle_margin"]
+    torch.save(state, tmp_path / "old.pt")
+    _, config, _ = load_model(tmp_path / "old.pt")
+    assert config.graph.obstacle_margin is None
 
 
 def run_cli(*args):

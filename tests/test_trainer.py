@@ -38,7 +38,7 @@ def test_samples_integrate_to_the_next_frame(folder):
     dataset = FrameDataset(split_files(folder, "train"), GraphOptions(levels=2))
     k, t = dataset.locate(len(dataset) - 1)
     graph = dataset[len(dataset) - 1]
-    positions = dataset.positions[k]
+    positions = dataset.positions[k][:, graph.scenario_nodes.numpy()]  # the nodes of the frame's graph
     dt = dataset.scenarios[k].frame_dt
     # graphs hold float32: a few float32 ulps of velocities and positions of order 1
     np.testing.assert_allclose(graph.velocity.numpy(), (positions[t] - positions[t - 1]) / dt, rtol=0, atol=1e-7)
@@ -217,12 +217,9 @@ def test_run_folder_errors(tiny_dataset, folder, tmp_path):
     Trainer(load_config(data), dataset_folder=folder).fit()
     with pytest.raises(ConfigError, match="already holds a checkpoint; pass --resume"):
         Trainer(load_config(data), dataset_folder=folder)
-    with pytest.raises(ConfigError, match="config key 'optim.lr' changed from 0.001 to 0.002"):
+    with pytest.raises(ConfigError, match=r"config key 'optim.lr' was 0.001 and is now 0.002; resume with optim.lr=0.001 \(what the run"):
         Trainer(load_config(config_dict(tiny_dataset, tmp_path, optim={"lr": 2e-3}, train={"steps": 2})),
                 dataset_folder=folder, resume=True)
-    with pytest.raises(ConfigError, match="'train.amp' needs a CUDA device"):
-        Trainer(load_config(config_dict(tiny_dataset, tmp_path, name="amp", train={"amp": True, "device": "cpu"})),
-                dataset_folder=folder)
     with pytest.raises(ConfigError, match=r"train.batch_size. \(1000\) exceeds the 12 training samples"):
         Trainer(load_config(config_dict(tiny_dataset, tmp_path, name="big", train={"batch_size": 1000})),
                 dataset_folder=folder)

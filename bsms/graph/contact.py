@@ -15,17 +15,14 @@ neighbour collapses onto that node.
 
 from __future__ import annotations
 
-from itertools import pairwise
-
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from bsms.graph.bfs import off_diagonal_pattern
 from bsms.graph.hierarchy import Hierarchy, edge_index_of
-from bsms.graph.pooling import closed_rows
 
-__all__ = ["contact_edges", "coarsen_contacts"]
+__all__ = ["contact_edges", "coarsen_contacts", "coarse_images"]
 
 
 def _pair_keys(pairs: np.ndarray, n: int) -> np.ndarray:
@@ -93,6 +90,34 @@ def _contact_matrix(contacts, n: int) -> sp.csr_matrix:
     return off_diagonal_pattern(matrix + matrix.T)
 
 
+def coarse_images(pairs: np.ndarray, reach: sp.csr_matrix) -> np.ndarray:
+    """One step of eq. 4.1 on contact pairs: every (a, b) with a in reach[i], b in reach[j] for a
+    pair (i, j), a != b.
+
+    pairs: (2, C) int64 node pairs of a level, both directions; reach: (n, n') 0/1 CSR with
+    sorted indices (:attr:`Hierarchy.reach`) -> (2, C') int64 unique pairs of the next level,
+    both directions, sorted by (row, col). A pair whose ends reach r_i and r_j nodes gives
+    r_i * r_j candidates, built without a loop from the pairs with i < j (the rest are mirrors).
+    """
+    indptr, indices, n = reach.indptr.astype(np.int64), reach.indices.astype(np.int64), reach.shape[1]
+    i, j = pairs[:, pairs[0] < pairs[1]]
+    start_i, start_j = indptr[i], indptr[j]
+    count_j = indptr[j + 1] - start_j
+    count = (indptr[i + 1] - start_i) * count_j
+    owner = np.repeat(np.arange(count.size), count)
+    offset = np.arange(owner.size) - np.repeat(np.cumsum(count) - count, count)
+    a = indices[start_i[owner] + offset // count_j[owner]]
+    b = indices[start_j[owner] + offset % count_j[owner]]
+    apart = a != b
+    a, b = a[apart], b[apart]
+    keys = np.minimum(a, b) * n + np.maximum(a, b)
+    keys.sort()
+    low, high = np.divmod(keys[np.concatenate([keys[:1] == keys[:1], keys[1:] != keys[:-1]])], n)
+    both = np.concatenate([low * n + high, high * n + low])
+    both.sort()
+    return np.stack(np.divmod(both, n))
+
+
 def coarsen_contacts(hierarchy: Hierarchy, contacts) -> tuple[np.ndarray, ...]:
     """Contact edges on every level (thesis eq. 4.1).
 
@@ -100,10 +125,7 @@ def coarsen_contacts(hierarchy: Hierarchy, contacts) -> tuple[np.ndarray, ...]:
     -> one (2, C_l) edge index per level, both directions, sorted; entry 0 is the input
     made symmetric.
     """
-    matrix = _contact_matrix(contacts, hierarchy.levels[0].n_nodes)
-    out = [edge_index_of(matrix)]
-    for finer, level in pairwise(hierarchy.levels):
-        rows = closed_rows(finer.adjacency, level.kept)  # (A_l + I)[K, :]
-        matrix = off_diagonal_pattern(rows @ matrix @ rows.T)
-        out.append(edge_index_of(matrix))
+    out = [edge_index_of(_contact_matrix(contacts, hierarchy.levels[0].n_nodes))]
+    for reach in hierarchy.reach:
+        out.append(coarse_images(out[-1], reach))
     return tuple(out)

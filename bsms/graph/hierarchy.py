@@ -130,6 +130,17 @@ class Hierarchy:
         """Values of level-0 nodes (N, ...) picked at the nodes of ``level``, e.g. rest positions."""
         return np.asarray(values)[self.finest_indices(level)]
 
+    @cached_property
+    def reach(self) -> tuple[sp.csr_matrix, ...]:
+        """Per level l < L-1: (n_l, n_{l+1}) 0/1 CSR, sorted indices, of (A_l + I)[:, K]: the kept
+        nodes of level l+1 that each level-l node is or touches (what eq. 4.1 carries a contact to)."""
+        maps = []
+        for finer, coarser in zip(self.levels[:-1], self.levels[1:], strict=True):
+            closed = closed_rows(finer.adjacency, coarser.kept).T.tocsr()
+            closed.sort_indices()
+            maps.append(closed)
+        return tuple(maps)
+
     # ------------------------------------------------------------------ serialisation
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Flat name -> array mapping (npz-ready, no objects)."""

@@ -57,8 +57,8 @@ class Transition:
     rows: (nnz,) int64 output nodes, sorted; cols: (nnz,) int64 input nodes;
     weights: (nnz,) float64, non-negative, each output's weights summing to 1;
     shape: (n_out, n_in). The hierarchy builds and caches numpy arrays; the learned models
-    read the same triplets as torch tensors (:class:`bsms.data.MeshLevels`, batched by
-    :meth:`bsms.data.LevelGraph.transition`, applied by :func:`bsms.models.apply_transition`).
+    read the same triplets as torch tensors (:func:`bsms.level_graph.level_graph`, batched by
+    :meth:`bsms.level_graph.LevelGraph.transition`, applied by :func:`bsms.models.apply_transition`).
     :meth:`matrix` and :meth:`apply` are for the numpy form.
     """
 

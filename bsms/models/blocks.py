@@ -3,10 +3,18 @@
 A graph is given to a block as its node latents ``v (N, H)`` and a list of edge sets (mesh
 edges, contact edges, ...), each with its own edge MLP. Edges run from ``senders`` j to
 ``receivers`` i; messages are summed per receiver.
+
+The first layer of an edge MLP reads the concatenation [e_ij, v_i, v_j]; with its weight
+split by columns as [W_e | W_r | W_s] it equals W_e e_ij + (W_r v)_i + (W_s v)_j + b. The
+node products W_r v and W_s v are computed once per node and gathered per edge (an edge set
+with fewer edges than nodes gathers v first instead), so the same parameters do the same
+computation with fewer multiplications; the node MLP's first layer on [v, sum e^1, ...] is
+split the same way. The parameters and state_dict keys are those of the concatenated form.
 """
 
 from __future__ import annotations
 
+from itertools import islice
 from typing import NamedTuple
 
 import torch
@@ -26,6 +34,61 @@ def sum_per_receiver(messages: Tensor, receivers: Tensor, n_nodes: int) -> Tenso
     """(E, H) messages summed onto their receivers -> (N, H)."""
     out = messages.new_zeros(n_nodes, messages.shape[1])
     return out.index_add_(0, receivers, messages)
+
+
+def edge_first_layer(linear: nn.Linear, features: Tensor, v: Tensor, index: Tensor) -> Tensor:
+    """``linear(cat([features, v[receivers], v[senders]], -1))`` without the concatenation.
+
+    features: (E, F), v: (N, H), index: (2, E) = (senders, receivers) -> (E, hidden).
+    """
+    f, h = features.shape[1], v.shape[1]
+    weight = linear.weight
+    senders, receivers = index
+    if index.shape[1] >= v.shape[0]:  # one product per node, gathered per edge
+        # rows 2i and 2i + 1 of ``products`` are W_r v_i + b and W_s v_i; each edge sums one of each
+        bias = torch.cat([linear.bias, torch.zeros_like(linear.bias)])
+        products = torch.addmm(bias, v, torch.cat([weight[:, f: f + h], weight[:, f + h:]]).T)
+        pairs = torch.stack([2 * receivers, 2 * senders + 1], dim=1)
+        out = nn.functional.embedding_bag(pairs, products.view(2 * v.shape[0], -1), mode="sum")
+    else:  # fewer edges than nodes: gather first, multiply per edge
+        gathered = torch.cat([v.index_select(0, receivers), v.index_select(0, senders)], dim=-1)
+        out = torch.addmm(linear.bias, gathered, weight[:, f:].T)
+    # addmm_ works in place, where autocast casts nothing: the edge term joins in the node terms' dtype
+    return out.addmm_(features.to(out.dtype), weight[:, :f].T.to(out.dtype))
+
+
+def node_first_layer(linear: nn.Linear, v: Tensor, aggregated: list[Tensor | None]) -> Tensor:
+    """``linear(cat([v, *aggregated], -1))``, all parts (N, H); a None part (an edge set without
+    edges) stands for zeros and costs nothing."""
+    h = v.shape[1]
+    out = torch.addmm(linear.bias, v, linear.weight[:, :h].T)
+    for k, part in enumerate(aggregated, start=1):
+        if part is not None:
+            out.addmm_(part.to(out.dtype), linear.weight[:, k * h: (k + 1) * h].T.to(out.dtype))
+    return out
+
+
+def after_first_layer(layers: nn.Sequential, hidden: Tensor) -> Tensor:
+    """The rest of an :func:`~bsms.models.mlp.mlp` after its first Linear."""
+    for layer in islice(layers, 1, None):
+        hidden = layer(hidden)
+    return hidden
+
+
+def edge_mlp_messages(edge_mlp: nn.Sequential, features: Tensor, v: Tensor, index: Tensor) -> Tensor:
+    """``edge_mlp(cat([features, v_receivers, v_senders], -1))``, (E, out), computed split."""
+    return after_first_layer(edge_mlp, edge_first_layer(edge_mlp[0], features, v, index))
+
+
+def node_update(node_mlp: nn.Sequential, v: Tensor, aggregated: list[Tensor | None]) -> Tensor:
+    """``node_mlp(cat([v, *aggregated], -1))`` computed split (None: an all-zero aggregate)."""
+    return after_first_layer(node_mlp, node_first_layer(node_mlp[0], v, aggregated))
+
+
+def _skippable(index: Tensor) -> bool:
+    """An edge set without edges sends zero messages; without gradients it is skipped. (Training
+    runs it, so that its MLP gets zero gradients as every other parameter does.)"""
+    return index.shape[1] == 0 and not torch.is_grad_enabled()
 
 
 class MessagePassingBlock(nn.Module):
@@ -52,10 +115,12 @@ class MessagePassingBlock(nn.Module):
             raise ValueError(f"block expects {len(self.edge_mlps)} edge sets, got {len(edge_sets)}")
         aggregated = []
         for edge_mlp, (index, features) in zip(self.edge_mlps, edge_sets, strict=True):
-            senders, receivers = index
-            messages = edge_mlp(torch.cat([features, v[receivers], v[senders]], dim=-1))
-            aggregated.append(sum_per_receiver(messages, receivers, v.shape[0]))
-        return v + self.node_mlp(torch.cat([v, *aggregated], dim=-1))
+            if _skippable(index):
+                aggregated.append(None)
+                continue
+            messages = edge_mlp_messages(edge_mlp, features, v, index)
+            aggregated.append(sum_per_receiver(messages, index[1], v.shape[0]))
+        return v + node_update(self.node_mlp, v, aggregated)
 
 
 class EdgeLatentBlock(nn.Module):
@@ -75,8 +140,11 @@ class EdgeLatentBlock(nn.Module):
         """v: (N, H), edge sets with (E, H) latents -> updated v and edge sets."""
         updated, aggregated = [], []
         for edge_mlp, (index, latents) in zip(self.edge_mlps, edge_sets, strict=True):
-            senders, receivers = index
-            latents = latents + edge_mlp(torch.cat([latents, v[receivers], v[senders]], dim=-1))
+            if _skippable(index):
+                updated.append(EdgeSet(index, latents))
+                aggregated.append(None)
+                continue
+            latents = latents + edge_mlp_messages(edge_mlp, latents, v, index)
             updated.append(EdgeSet(index, latents))
-            aggregated.append(sum_per_receiver(latents, receivers, v.shape[0]))
-        return v + self.node_mlp(torch.cat([v, *aggregated], dim=-1)), updated
+            aggregated.append(sum_per_receiver(latents, index[1], v.shape[0]))
+        return v + node_update(self.node_mlp, v, aggregated), updated

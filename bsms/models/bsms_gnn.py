@@ -32,7 +32,7 @@ def apply_transition(v: Tensor, transition: Transition) -> Tensor:
     """(n_in, H) -> (n_out, H): out_r = sum over triplets (r, c, w) of w * v_c (thesis §4.3.2)."""
     out = v.new_zeros(transition.shape[0], v.shape[1])
     weights = transition.weights.to(v.dtype)[:, None]
-    return out.index_add_(0, transition.rows, weights * v[transition.cols])
+    return out.index_add_(0, transition.rows, v.index_select(0, transition.cols) * weights)
 
 
 class BSMSGNN(nn.Module):
@@ -65,7 +65,7 @@ class BSMSGNN(nn.Module):
     def forward(self, node_features: Tensor, levels: list[Level]) -> Tensor:
         """node_features: (N, node_in); levels[0] is the mesh itself -> (N, node_out)."""
         depth = min(self.n_levels, len(levels))
-        v = self.encoder(node_features)
+        v = self.encoder(node_features).to(node_features.dtype)  # the residual stream: float32 under autocast
         skips = []
         for l in range(depth - 1):
             v = self.down_blocks[l](v, levels[l].edge_sets)

@@ -30,9 +30,9 @@ class MeshGraphNets(nn.Module):
 
     def forward(self, node_features: Tensor, levels: list[Level]) -> Tensor:
         """node_features: (N, node_in); only ``levels[0]`` (the mesh) is used -> (N, node_out)."""
-        v = self.encoder(node_features)
+        v = self.encoder(node_features).to(node_features.dtype)  # latents: float32 under autocast
         edge_sets = [
-            EdgeSet(index, encode(features))
+            EdgeSet(index, encode(features).to(features.dtype))
             for encode, (index, features) in zip(self.edge_encoders, levels[0].edge_sets, strict=True)
         ]
         for block in self.blocks:

@@ -16,7 +16,7 @@ def mlp(
     layers: list[nn.Module] = []
     width = in_dim
     for _ in range(hidden_layers):
-        layers += [nn.Linear(width, hidden), nn.ReLU()]
+        layers += [nn.Linear(width, hidden), nn.ReLU(inplace=True)]
         width = hidden
     layers.append(nn.Linear(width, out_dim))
     if layer_norm:

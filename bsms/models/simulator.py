@@ -16,15 +16,18 @@ from bsms.data import N_NODE_TYPES, LevelGraph, NodeType
 from bsms.models.blocks import EdgeSet
 from bsms.models.bsms_gnn import BSMSGNN, Level
 from bsms.models.meshgraphnets import MeshGraphNets
+from bsms.models.precision import network_autocast, network_dtype
 from bsms.normalize import Normalizer
 
 CORES = ("bsms_gnn", "meshgraphnets")
 
 
-def _offsets(pos: Tensor, edge_index: Tensor) -> Tensor:
-    """(E, d + 1): x_receiver - x_sender and its norm."""
-    delta = pos[edge_index[1]] - pos[edge_index[0]]
-    return torch.cat([delta, delta.norm(dim=-1, keepdim=True)], dim=-1)
+def _offsets(points: Tensor, edge_index: Tensor, dim: int) -> Tensor:
+    """points: (n, k d), k points of dimension d per node -> (E, k (d + 1)): for each of the k,
+    x_receiver - x_sender and its norm."""
+    delta = points.index_select(0, edge_index[1]) - points.index_select(0, edge_index[0])
+    delta = delta.view(delta.shape[0], points.shape[1] // dim, dim)
+    return torch.cat([delta, delta.norm(dim=-1, keepdim=True)], dim=-1).flatten(1)
 
 
 class LearnedSimulator(nn.Module):
@@ -71,12 +74,12 @@ class LearnedSimulator(nn.Module):
 
     def _level(self, graph: LevelGraph, l: int, accumulate: bool) -> Level:
         nodes, edge_index = graph[f"nodes_{l}"], graph[f"edge_index_{l}"]
-        rest, pos = graph.rest_pos[nodes], graph.pos[nodes]
-        features = [torch.cat([_offsets(rest, edge_index), _offsets(pos, edge_index)], dim=-1)]
+        rest_and_pos = torch.cat([graph.rest_pos, graph.pos], dim=-1).index_select(0, nodes)
+        features = [_offsets(rest_and_pos, edge_index, self.dim)]
         indices = [edge_index]
         if self.contact:
             contact_index = graph[f"contact_index_{l}"]
-            features.append(_offsets(pos, contact_index))
+            features.append(_offsets(rest_and_pos[:, self.dim:], contact_index, self.dim))
             indices.append(contact_index)
         edge_sets = []
         for normalizer, index, raw in zip(self.edge_normalizers[l], indices, features, strict=True):
@@ -87,30 +90,38 @@ class LearnedSimulator(nn.Module):
             return Level(edge_sets, None, None)
         return Level(edge_sets, graph.transition("down", l), graph.transition("up", l))
 
-    def forward(self, graph: LevelGraph, accumulate: bool = False) -> Tensor:
-        """Normalised velocity change per node, (N, d). ``accumulate`` feeds the normalisers."""
+    def forward(self, graph: LevelGraph, accumulate: bool = False, precision: str = "f32") -> Tensor:
+        """Normalised velocity change per node, (N, d) float32. ``accumulate`` feeds the normalisers;
+        ``precision`` (``auto``, ``bf16``, ``f32``: :mod:`bsms.models.precision`) is the core
+        network's number format; features and normalisers are float32 in every precision."""
         if graph.n_levels < self.n_levels:
             raise ValueError(f"the graph has {graph.n_levels} levels but the model needs {self.n_levels}")
+        dtype = network_dtype(precision, graph.pos.device)
         raw = self.node_features(graph)
         if accumulate:
             self.node_normalizer.accumulate(raw)
         levels = [self._level(graph, l, accumulate) for l in range(self.n_levels)]
-        return self.core(self.node_normalizer(raw), levels)
+        inputs = self.node_normalizer(raw)
+        with network_autocast(dtype, graph.pos.device):
+            return self.core(inputs, levels).float()
 
-    def loss(self, graph: LevelGraph, accumulate: bool = False, reduction: str = "mean") -> Tensor:
+    def loss(self, graph: LevelGraph, accumulate: bool = False, reduction: str = "mean",
+             precision: str = "f32") -> Tensor:
         """Squared error on the normalised target, summed over dimensions, over ``loss_mask`` nodes.
 
         reduction: ``"mean"`` over those nodes, or ``"sum"`` (a trainer that splits a batch
-        over processes divides the sum by the node count of the whole batch).
+        over processes divides the sum by the node count of the whole batch); precision: as in
+        :meth:`forward`.
         """
         if accumulate:
             self.output_normalizer.accumulate(graph.target[graph.loss_mask])
-        prediction = self(graph, accumulate)
+        prediction = self(graph, accumulate, precision)
         error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)[graph.loss_mask]
         return error.sum() if reduction == "sum" else error.mean()
 
     @torch.no_grad()
-    def velocity_change(self, graph: LevelGraph) -> Tensor:
-        """(N, d) predicted velocity change in physical units (zero on non-free nodes)."""
-        change = self.output_normalizer.inverse(self(graph))
+    def velocity_change(self, graph: LevelGraph, precision: str = "f32") -> Tensor:
+        """(N, d) predicted velocity change in physical units (zero on non-free nodes), float32;
+        precision: as in :meth:`forward`."""
+        change = self.output_normalizer.inverse(self(graph, precision=precision))
         return torch.where((graph.node_type == NodeType.FREE)[:, None], change, torch.zeros_like(change))

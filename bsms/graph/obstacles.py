@@ -1,0 +1,123 @@
+"""Obstacle geometry in the learned graph, and the wall nodes each frame needs (lean obstacles).
+
+Walls and containers are stored as facets (segments in 2D, triangles in 3D). They enter the
+graph as nodes of their own, subdivided so that a body node near a wall always finds wall
+nodes within the contact radius (:func:`subdivide_facets`). A frame's graph then holds only
+the obstacle nodes within reach of a body (:class:`ObstacleReach`): a wall nobody is near
+costs nothing. Nodes are numbered body first, obstacles after, as in a scenario.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from bsms.graph.contact import contact_edges
+
+__all__ = ["subdivide_facets", "facet_edges", "ObstacleReach"]
+
+
+def subdivide_facets(nodes: np.ndarray, facets: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Obstacle geometry with no facet edge longer than ``spacing`` (2D: original nodes first).
+
+    nodes (M, d); facets (F, k) with k = 2 (segments) or 3 (triangles). Each facet is split
+    uniformly into n pieces per edge (segments: n per segment; triangles: one n for all, so
+    shared edges get the same points); points shared by facets are merged.
+    """
+    k = facets.shape[1]
+    if len(facets) == 0 or k not in (2, 3):
+        return nodes, facets
+    corners = nodes[facets]  # (F, k, d)
+    lengths = np.linalg.norm(corners[:, [1, 2, 0][:k]] - corners, axis=-1) if k == 3 else \
+        np.linalg.norm(corners[:, 1] - corners[:, 0], axis=-1)[:, None]
+    if lengths.max() <= spacing:
+        return nodes, facets
+    if k == 2:
+        return _subdivide_segments(nodes, facets, np.maximum(1, np.ceil(lengths[:, 0] / spacing).astype(int)))
+    n = int(np.ceil(lengths.max() / spacing))
+    # barycentric lattice (i, j) with i + j <= n, and its small triangles
+    lattice = np.array([(i, j) for i in range(n + 1) for j in range(n + 1 - i)])
+    index = {tuple(p): q for q, p in enumerate(lattice)}
+    small = []
+    for i in range(n):
+        for j in range(n - i):
+            small.append((index[i, j], index[i + 1, j], index[i, j + 1]))
+            if i + j < n - 1:
+                small.append((index[i + 1, j], index[i + 1, j + 1], index[i, j + 1]))
+    small = np.array(small)
+    weights = np.column_stack([n - lattice.sum(1), lattice[:, 0], lattice[:, 1]]) / n  # (L, 3)
+    points = np.einsum("lc,fcd->fld", weights, corners).reshape(-1, nodes.shape[1])
+    triangles = (small[None] + len(lattice) * np.arange(len(facets))[:, None, None]).reshape(-1, 3)
+    scale = max(float(np.abs(points).max()), 1.0)
+    _, first, inverse = np.unique(np.round(points / (1e-9 * scale)).astype(np.int64), axis=0, return_index=True,
+                                  return_inverse=True)
+    return points[first], inverse.reshape(-1)[triangles]
+
+
+def _subdivide_segments(nodes: np.ndarray, segments: np.ndarray, pieces: np.ndarray):
+    points, out = [nodes], []
+    count = len(nodes)
+    for (a, b), n in zip(segments, pieces, strict=True):
+        inner = nodes[a] + np.outer(np.arange(1, n) / n, nodes[b] - nodes[a])
+        ids = np.concatenate([[a], count + np.arange(n - 1), [b]])
+        points.append(inner)
+        count += n - 1
+        out.append(np.stack([ids[:-1], ids[1:]], axis=1))
+    return np.concatenate(points), np.concatenate(out)
+
+
+def facet_edges(facets: np.ndarray) -> np.ndarray:
+    """(E, 2) unique sorted node pairs of the edges of ``facets`` (F, k)."""
+    k = facets.shape[1]
+    pairs = np.concatenate([facets[:, [a, b]] for a in range(k) for b in range(a + 1, k)])
+    return np.unique(np.sort(pairs, axis=1), axis=0)
+
+
+class ObstacleReach:
+    """Which obstacle nodes a frame's graph holds, and the frame's level-0 contact edges.
+
+    n_body: body nodes (the first n_body of N scenario nodes; the rest are obstacle nodes);
+    body_id: (N,) body of each node (obstacles: one id of their own); contact_radius: contact
+    distance; reach: obstacle nodes within this distance of a body node enter the frame
+    (>= contact_radius), or None: every obstacle node, every frame; self_contact, edges
+    ((E, 2) mesh and facet edges): as :func:`~bsms.graph.contact.contact_edges`.
+    """
+
+    def __init__(self, n_body: int, body_id: np.ndarray, contact_radius: float, reach: float | None,
+                 self_contact: bool = False, edges: np.ndarray | None = None):
+        if reach is not None and reach < contact_radius:
+            raise ValueError(f"reach ({reach}) must be at least the contact radius ({contact_radius})")
+        self.n_body, self.body_id, self.radius, self.reach = int(n_body), np.asarray(body_id), contact_radius, reach
+        self.self_contact, self.edges = self_contact, edges
+        self.several_bodies = len(np.unique(self.body_id[: self.n_body])) > 1
+        self._obstacles: tuple[np.ndarray, cKDTree] | None = None
+
+    def _obstacle_tree(self, obstacle_pos: np.ndarray) -> cKDTree:
+        """A KD-tree of the obstacle nodes, rebuilt only when they move."""
+        if self._obstacles is None or not np.array_equal(self._obstacles[0], obstacle_pos):
+            self._obstacles = (obstacle_pos.copy(), cKDTree(obstacle_pos))
+        return self._obstacles[1]
+
+    def frame(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(chosen, contacts) of positions ``pos`` (N, d) of all scenario nodes: the obstacle
+        nodes in reach (scenario indices, sorted) and the (2, C) contact edges, both directions,
+        sorted by (row, col) -- between different bodies and between bodies and obstacles
+        (with self_contact, every pair :func:`contact_edges` finds, to be cut to the frame's nodes)."""
+        n = len(pos)
+        body_obstacle, chosen = np.zeros((2, 0), np.int64), np.arange(self.n_body, n)
+        if n > self.n_body and (self.reach is not None or not self.self_contact):
+            near = cKDTree(pos[: self.n_body]).sparse_distance_matrix(
+                self._obstacle_tree(pos[self.n_body:]), self.radius if self.reach is None else self.reach,
+                output_type="ndarray")
+            touching = near[near["v"] <= self.radius]
+            body_obstacle = np.stack([touching["i"], touching["j"] + self.n_body]).astype(np.int64)
+            if self.reach is not None:
+                chosen = np.unique(near["j"]).astype(np.int64) + self.n_body
+        if self.self_contact:
+            return chosen, contact_edges(pos, self.body_id, self.radius, exclude=self.edges, self_contact=True)
+        pairs = [body_obstacle]
+        if self.several_bodies:
+            pairs.append(contact_edges(pos[: self.n_body], self.body_id[: self.n_body], self.radius,
+                                       self_contact=False))
+        both = np.concatenate([*pairs, body_obstacle[::-1]], axis=1)
+        return chosen, both[:, np.argsort(both[0] * n + both[1], kind="stable")]
