@@ -39,7 +39,7 @@ _spec.loader.exec_module(train_cli)
 def _run(main, argv, capsys) -> tuple[int, str]:
     code = main([str(a) for a in argv])
     err = capsys.readouterr().err
-    assert "Traceback" not in err
+    assert err.startswith("error: ") and err.count("\n") == 1, f"one error line, nothing else: {err!r}"
     return code, err
 
 

@@ -22,10 +22,15 @@ from . import linalg
 
 __all__ = [
     "Material", "LinearElastic", "NeoHookean", "FixedCorotated", "WeaklyCompressibleFluid", "MATERIALS",
-    "rotation_part",
+    "rotation_part", "lame",
 ]
 
 _POLAR_ITERATIONS = 12
+
+
+def lame(E: float, nu: float) -> tuple[float, float]:
+    """(mu, lambda) of Young's modulus E and Poisson ratio nu (3D formulas)."""
+    return E / (2.0 * (1.0 + nu)), E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
 
 @dataclass(frozen=True)
@@ -45,11 +50,11 @@ class Material(ABC):
 
     @property
     def mu(self) -> float:
-        return self.E / (2.0 * (1.0 + self.nu))
+        return lame(self.E, self.nu)[0]
 
     @property
     def lam(self) -> float:
-        return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+        return lame(self.E, self.nu)[1]
 
     @property
     def wave_speed(self) -> float:

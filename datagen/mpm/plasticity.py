@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import torch
 
+from .materials import lame
+
 __all__ = ["J2Softening", "hencky_tau"]
 
 _NEWTON_ITERATIONS = 30
@@ -55,11 +57,11 @@ class J2Softening:
 
     @property
     def mu(self) -> float:
-        return self.E / (2.0 * (1.0 + self.nu))
+        return lame(self.E, self.nu)[0]
 
     @property
     def lam(self) -> float:
-        return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+        return lame(self.E, self.nu)[1]
 
     def strength(self, eps_q: torch.Tensor) -> torch.Tensor:
         """kappa(eps_q^p) = (kappa_p - kappa_r) exp(-eta eps_q^p) + kappa_r."""
