@@ -60,15 +60,58 @@ class DatasetConfig:
 @dataclass
 class ModelConfig:
     """name: the core network; latent: width of latents and hidden layers; hidden_layers per
-    MLP; passes: message passes of meshgraphnets (bsms_gnn makes one per level)."""
+    MLP; passes: message passes of meshgraphnets (bsms_gnn makes one per level).
 
-    name: Literal["bsms_gnn", "meshgraphnets"] = "bsms_gnn"
+    transition (bsms_gnn only; thesis §4.4.4.1, Table 4.7): ``bistride`` (the weighted
+    aggregation and return of §4.3.2), ``none`` (pool and unpool by index), ``graph_conv`` (one
+    unweighted graph convolution), ``pos_kernel`` (inverse-distance weights, Liu et al.) or
+    ``learnable`` (one message pass per transition, Fortunato et al.).
+    grid_* (ms_gnn_grid; thesis §4.4.2.3, Table 4.3): grid levels below the mesh, message
+    passes per level (the mesh first), the finest cell size per dimension (empty: twice the
+    mean rest length of the mesh edges of each graph) and its inflation from level to level.
+    pool_ratio (graph_unets): fraction of nodes top-k pooling keeps at each level.
+    """
+
+    name: Literal["bsms_gnn", "meshgraphnets", "ms_gnn_grid", "graph_unets"] = "bsms_gnn"
     latent: int = 128
     hidden_layers: int = 2
     passes: int = 15
+    transition: Literal["bistride", "none", "graph_conv", "pos_kernel", "learnable"] = "bistride"
+    grid_levels: int = 4
+    grid_passes: list[int] = field(default_factory=lambda: [4, 2, 2, 4])
+    grid_dx: list[float] = field(default_factory=list)
+    grid_inflation: float = 2.0
+    pool_ratio: float = 0.5
 
     def validate(self, prefix: str) -> None:
-        _at_least(self, prefix, 1, ("latent", "hidden_layers", "passes"))
+        _at_least(self, prefix, 1, ("latent", "hidden_layers", "passes", "grid_levels"))
+        if self.transition != "bistride" and self.name != "bsms_gnn":
+            raise ConfigError(f"config key '{prefix}.transition' applies to bsms_gnn only; {self.name} "
+                              f"has its own transitions (leave it at bistride)")
+        if len(self.grid_passes) != self.grid_levels or min(self.grid_passes) < 1:
+            raise ConfigError(f"config key '{prefix}.grid_passes' must give one pass count >= 1 per grid level "
+                              f"({self.grid_levels}, '{prefix}.grid_levels'), got {self.grid_passes}")
+        if any(dx <= 0 for dx in self.grid_dx):
+            raise ConfigError(f"config key '{prefix}.grid_dx' must hold positive cell sizes (one per dimension) "
+                              f"or be empty (automatic), got {self.grid_dx}")
+        if self.grid_inflation <= 1:
+            raise ConfigError(f"config key '{prefix}.grid_inflation' must be > 1, got {self.grid_inflation}")
+        if not 0 < self.pool_ratio < 1:
+            raise ConfigError(f"config key '{prefix}.pool_ratio' must be between 0 and 1 (exclusive), "
+                              f"got {self.pool_ratio}")
+
+    def core_options(self, dim: int) -> dict:
+        """Keyword options of the core network beyond the common ones."""
+        if self.name == "bsms_gnn":
+            return {"transition": self.transition}
+        if self.name == "ms_gnn_grid":
+            if self.grid_dx and len(self.grid_dx) != dim:
+                raise ConfigError(f"config key 'model.grid_dx' must give one cell size per dimension ({dim}), "
+                                  f"got {self.grid_dx}")
+            return {"passes": list(self.grid_passes), "dx": list(self.grid_dx), "inflation": self.grid_inflation}
+        if self.name == "graph_unets":
+            return {"ratio": self.pool_ratio}
+        return {}
 
 
 @dataclass
@@ -319,6 +362,7 @@ def build_model(config: Config, dim: int) -> LearnedSimulator:
         config.model.name, dim, n_levels=config.graph.levels, contact=config.graph.contact,
         n_constants=len(config.graph.constants), latent=config.model.latent, n_passes=config.model.passes,
         hidden_layers=config.model.hidden_layers, max_accumulations=config.train.normalizer_steps,
+        core_options=config.model.core_options(dim),
     )
 
 

@@ -7,25 +7,12 @@ hierarchy of the mesh; the network never sees positions except through edge feat
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 from torch import Tensor, nn
 
 from bsms.graph import Transition
-from bsms.models.blocks import EdgeSet, MessagePassingBlock
+from bsms.models.blocks import MessagePassingBlock
+from bsms.models.inputs import Context, Level
 from bsms.models.mlp import mlp
-
-
-class Level(NamedTuple):
-    """One level of the multi-level graph a core network reads: its edge sets and the
-    transitions to and from the next level (:class:`~bsms.graph.Transition` with torch tensors).
-
-    ``down`` (level l -> l+1) and ``up`` (l+1 -> l) are None on the coarsest level.
-    """
-
-    edge_sets: list[EdgeSet]
-    down: Transition | None
-    up: Transition | None
 
 
 def apply_transition(v: Tensor, transition: Transition) -> Tensor:
@@ -47,10 +34,12 @@ class BSMSGNN(nn.Module):
     """
 
     def __init__(self, node_in: int, node_out: int, edge_feature_dims: list[int], n_levels: int,
-                 latent: int = 128, hidden: int = 128, hidden_layers: int = 2):
+                 latent: int = 128, hidden: int = 128, hidden_layers: int = 2, transition: str = "bistride"):
         super().__init__()
         if n_levels < 1:
             raise ValueError(f"n_levels must be at least 1, got {n_levels}")
+        if transition != "bistride":
+            raise ValueError(f"transition {transition!r} is not available yet")
         self.n_levels = n_levels
 
         def block() -> MessagePassingBlock:
@@ -62,7 +51,7 @@ class BSMSGNN(nn.Module):
         self.up_blocks = nn.ModuleList(block() for _ in range(n_levels - 1))
         self.decoder = mlp(latent, node_out, hidden, hidden_layers, layer_norm=False)
 
-    def forward(self, node_features: Tensor, levels: list[Level]) -> Tensor:
+    def forward(self, node_features: Tensor, levels: list[Level], context: Context | None = None) -> Tensor:
         """node_features: (N, node_in); levels[0] is the mesh itself -> (N, node_out)."""
         depth = min(self.n_levels, len(levels))
         v = self.encoder(node_features).to(node_features.dtype)  # the residual stream: float32 under autocast

@@ -9,7 +9,7 @@ from __future__ import annotations
 from torch import Tensor, nn
 
 from bsms.models.blocks import EdgeLatentBlock, EdgeSet
-from bsms.models.bsms_gnn import Level
+from bsms.models.inputs import Context, Level
 from bsms.models.mlp import mlp
 
 
@@ -28,7 +28,7 @@ class MeshGraphNets(nn.Module):
         )
         self.decoder = mlp(latent, node_out, hidden, hidden_layers, layer_norm=False)
 
-    def forward(self, node_features: Tensor, levels: list[Level]) -> Tensor:
+    def forward(self, node_features: Tensor, levels: list[Level], context: Context | None = None) -> Tensor:
         """node_features: (N, node_in); only ``levels[0]`` (the mesh) is used -> (N, node_out)."""
         v = self.encoder(node_features).to(node_features.dtype)  # latents: float32 under autocast
         edge_sets = [

@@ -14,12 +14,32 @@ from torch import Tensor, nn
 
 from bsms.data import N_NODE_TYPES, LevelGraph, NodeType
 from bsms.models.blocks import EdgeSet
-from bsms.models.bsms_gnn import BSMSGNN, Level
+from bsms.models.bsms_gnn import BSMSGNN
+from bsms.models.inputs import Context, Level
 from bsms.models.meshgraphnets import MeshGraphNets
 from bsms.models.precision import network_autocast, network_dtype
 from bsms.normalize import Normalizer
 
-CORES = ("bsms_gnn", "meshgraphnets")
+CORES = ("bsms_gnn", "meshgraphnets", "ms_gnn_grid", "graph_unets")
+# cores that read only the mesh (level 0) of the bi-stride hierarchy
+SINGLE_LEVEL = ("meshgraphnets", "ms_gnn_grid", "graph_unets")
+
+
+def build_core(core: str, node_in: int, node_out: int, edge_dims: list[int], *, n_levels: int, latent: int,
+               n_passes: int, hidden_layers: int, options: dict) -> nn.Module:
+    """The core network ``core`` (one of :data:`CORES`); ``options``: its own keyword options."""
+    common = {"latent": latent, "hidden": latent, "hidden_layers": hidden_layers, **options}
+    if core == "bsms_gnn":
+        return BSMSGNN(node_in, node_out, edge_dims, n_levels, **common)
+    if core == "meshgraphnets":
+        return MeshGraphNets(node_in, node_out, edge_dims, n_passes=n_passes, **common)
+    if core == "ms_gnn_grid":
+        from bsms.models.ms_gnn_grid import MSGNNGrid
+        return MSGNNGrid(node_in, node_out, edge_dims, **common)
+    if core == "graph_unets":  # as many levels as BSMS-GNN would use
+        from bsms.models.graph_unets import GraphUNets
+        return GraphUNets(node_in, node_out, edge_dims, n_levels, **common)
+    raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
 
 
 def _offsets(points: Tensor, edge_index: Tensor, dim: int) -> Tensor:
@@ -42,23 +62,21 @@ class LearnedSimulator(nn.Module):
         latent, n_passes: width of the latents; message passes of meshgraphnets.
         hidden_layers: hidden layers of every MLP.
         max_accumulations: batches after which the normalisers freeze.
+        core_options: options of the core beyond these (``transition`` of bsms_gnn, ...).
     """
 
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
-                 latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000):
+                 latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
+                 core_options: dict | None = None):
         super().__init__()
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
         self.dim, self.contact = dim, contact
-        self.n_levels = n_levels if core == "bsms_gnn" else 1
+        self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
         node_in = dim + N_NODE_TYPES + n_constants
         edge_dims = [2 * dim + 2] + ([dim + 1] if contact else [])
-        if core == "bsms_gnn":
-            self.core = BSMSGNN(node_in, dim, edge_dims, n_levels, latent=latent, hidden=latent,
-                                hidden_layers=hidden_layers)
-        else:
-            self.core = MeshGraphNets(node_in, dim, edge_dims, n_passes=n_passes, latent=latent, hidden=latent,
-                                      hidden_layers=hidden_layers)
+        self.core = build_core(core, node_in, dim, edge_dims, n_levels=n_levels, latent=latent, n_passes=n_passes,
+                               hidden_layers=hidden_layers, options=dict(core_options or {}))
         self.node_normalizer = Normalizer(node_in, max_accumulations)
         self.output_normalizer = Normalizer(dim, max_accumulations)
         self.edge_normalizers = nn.ModuleList(
@@ -87,8 +105,18 @@ class LearnedSimulator(nn.Module):
                 normalizer.accumulate(raw)
             edge_sets.append(EdgeSet(index, normalizer(raw)))
         if l + 1 == self.n_levels:
-            return Level(edge_sets, None, None)
-        return Level(edge_sets, graph.transition("down", l), graph.transition("up", l))
+            return Level(edge_sets, None, None, nodes)
+        return Level(edge_sets, graph.transition("down", l), graph.transition("up", l), nodes)
+
+    def _context(self, graph: LevelGraph, accumulate: bool) -> Context:
+        counts = graph["n_nodes_0"]
+        if torch.is_tensor(counts):  # a batch: one count per graph
+            ids = torch.arange(len(counts), device=graph.pos.device)
+            graph_ids = ids.repeat_interleave(counts.to(graph.pos.device))
+            n_graphs = len(counts)
+        else:
+            graph_ids, n_graphs = torch.zeros(graph.pos.shape[0], dtype=torch.long, device=graph.pos.device), 1
+        return Context(torch.cat([graph.rest_pos, graph.pos], dim=-1), graph_ids, n_graphs, self.dim, accumulate)
 
     def forward(self, graph: LevelGraph, accumulate: bool = False, precision: str = "f32") -> Tensor:
         """Normalised velocity change per node, (N, d) float32. ``accumulate`` feeds the normalisers;
@@ -102,8 +130,9 @@ class LearnedSimulator(nn.Module):
             self.node_normalizer.accumulate(raw)
         levels = [self._level(graph, l, accumulate) for l in range(self.n_levels)]
         inputs = self.node_normalizer(raw)
+        context = self._context(graph, accumulate) if getattr(self.core, "needs_context", False) else None
         with network_autocast(dtype, graph.pos.device):
-            return self.core(inputs, levels).float()
+            return self.core(inputs, levels, context).float()
 
     def loss(self, graph: LevelGraph, accumulate: bool = False, reduction: str = "mean",
              precision: str = "f32") -> Tensor:
