@@ -124,7 +124,7 @@ def test_loss_only_counts_free_nodes(graphs):
 
 
 def test_bad_inputs():
-    with pytest.raises(ValueError, match="unknown model 'gcn'; choose one of bsms_gnn, meshgraphnets"):
+    with pytest.raises(ValueError, match="unknown model 'gcn'; choose one of bsms_gnn, meshgraphnets, ms_gnn_grid, graph_unets"):
         LearnedSimulator("gcn", 2)
     mesh = shapes.disk(1.0, 0.3)
     levels = hierarchy_levels(bistride_levels(mesh, mesh.nodes, levels=2))

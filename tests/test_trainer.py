@@ -196,7 +196,7 @@ def test_checkpoint_reproduces_predictions_in_a_fresh_process(tiny_dataset, fold
 
 # ----------------------------------------------------------------------------- errors
 @pytest.mark.parametrize("override, message", [
-    ({"model": {"name": "gcn"}}, "config key 'model.name' must be one of 'bsms_gnn', 'meshgraphnets', got 'gcn'"),
+    ({"model": {"name": "gcn"}}, "config key 'model.name' must be one of 'bsms_gnn', 'meshgraphnets', 'ms_gnn_grid', 'graph_unets', got 'gcn'"),
     ({"optim": {"lr": -1.0}}, "config key 'optim.lr' must be positive, got -1.0"),
     ({"train": {"batch_size": 0}}, "config key 'train.batch_size' must be >= 1, got 0"),
     ({"train": {"stpes": 10}}, "unknown config key 'train.stpes'"),
@@ -255,7 +255,7 @@ def test_train_py_reports_config_errors(tmp_path):
                             capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert result.returncode == 2
     assert result.stderr.strip() == ("error: config key 'model.name' must be one of 'bsms_gnn', 'meshgraphnets', "
-                                     "got 'gcn'")
+                                     "'ms_gnn_grid', 'graph_unets', got 'gcn'")
 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "configs").glob("*.yaml")), ids=lambda p: p.stem)
