@@ -2,13 +2,16 @@
 
 from bsms.models.blocks import EdgeLatentBlock, EdgeSet, MessagePassingBlock
 from bsms.models.bsms_gnn import BSMSGNN, apply_transition
+from bsms.models.graph_unets import GraphUNets
 from bsms.models.inputs import Context, Level
 from bsms.models.meshgraphnets import MeshGraphNets
 from bsms.models.mlp import mlp
+from bsms.models.ms_gnn_grid import MSGNNGrid
+from bsms.models.transition_variants import TRANSITIONS
 
-MODELS = {"bsms_gnn": BSMSGNN, "meshgraphnets": MeshGraphNets}
+MODELS = {"bsms_gnn": BSMSGNN, "meshgraphnets": MeshGraphNets, "ms_gnn_grid": MSGNNGrid, "graph_unets": GraphUNets}
 
 __all__ = [
-    "BSMSGNN", "MODELS", "Context", "EdgeLatentBlock", "EdgeSet", "Level", "MeshGraphNets", "MessagePassingBlock",
-    "apply_transition", "mlp",
+    "BSMSGNN", "MODELS", "Context", "EdgeLatentBlock", "EdgeSet", "GraphUNets", "Level", "MSGNNGrid",
+    "MeshGraphNets", "MessagePassingBlock", "TRANSITIONS", "apply_transition", "mlp",
 ]

@@ -3,23 +3,20 @@
 encoder -> [block, pool] per level going down -> bottom block -> [unpool, block, + skip]
 per level going up -> decoder. The levels and transition weights come from the bi-stride
 hierarchy of the mesh; the network never sees positions except through edge features.
+The transitions of the ablation (thesis §4.4.4.1, Table 4.7) are in
+:mod:`bsms.models.transition_variants`; the default ``bistride`` reads no positions.
 """
 
 from __future__ import annotations
 
 from torch import Tensor, nn
 
-from bsms.graph import Transition
 from bsms.models.blocks import MessagePassingBlock
 from bsms.models.inputs import Context, Level
 from bsms.models.mlp import mlp
+from bsms.models.transition_variants import TRANSITIONS, apply_transition, make_transitions
 
-
-def apply_transition(v: Tensor, transition: Transition) -> Tensor:
-    """(n_in, H) -> (n_out, H): out_r = sum over triplets (r, c, w) of w * v_c (thesis §4.3.2)."""
-    out = v.new_zeros(transition.shape[0], v.shape[1])
-    weights = transition.weights.to(v.dtype)[:, None]
-    return out.index_add_(0, transition.rows, v.index_select(0, transition.cols) * weights)
+__all__ = ["BSMSGNN", "apply_transition"]
 
 
 class BSMSGNN(nn.Module):
@@ -31,6 +28,11 @@ class BSMSGNN(nn.Module):
             the same at every level.
         n_levels: levels used; a hierarchy with fewer levels uses its own depth (the bottom
             block runs on its coarsest level), one with more uses only the first ``n_levels``.
+        transition: how latents move between levels, one of ``bistride`` (default), ``none``,
+            ``graph_conv``, ``pos_kernel``, ``learnable`` (:mod:`bsms.models.transition_variants`).
+
+    ``needs_context`` is True only for the transitions that read positions (``pos_kernel``,
+    ``learnable``); the others get no Context and cost nothing beyond the transition itself.
     """
 
     def __init__(self, node_in: int, node_out: int, edge_feature_dims: list[int], n_levels: int,
@@ -38,8 +40,8 @@ class BSMSGNN(nn.Module):
         super().__init__()
         if n_levels < 1:
             raise ValueError(f"n_levels must be at least 1, got {n_levels}")
-        if transition != "bistride":
-            raise ValueError(f"transition {transition!r} is not available yet")
+        if transition not in TRANSITIONS:
+            raise ValueError(f"unknown transition {transition!r}; choose one of {', '.join(TRANSITIONS)}")
         self.n_levels = n_levels
 
         def block() -> MessagePassingBlock:
@@ -50,6 +52,9 @@ class BSMSGNN(nn.Module):
         self.bottom_block = block()
         self.up_blocks = nn.ModuleList(block() for _ in range(n_levels - 1))
         self.decoder = mlp(latent, node_out, hidden, hidden_layers, layer_norm=False)
+        self.transition = transition
+        self.transitions = make_transitions(transition, n_levels, latent, hidden, hidden_layers)
+        self.needs_context = self.transitions.needs_context
 
     def forward(self, node_features: Tensor, levels: list[Level], context: Context | None = None) -> Tensor:
         """node_features: (N, node_in); levels[0] is the mesh itself -> (N, node_out)."""
@@ -59,9 +64,9 @@ class BSMSGNN(nn.Module):
         for l in range(depth - 1):
             v = self.down_blocks[l](v, levels[l].edge_sets)
             skips.append(v)
-            v = apply_transition(v, levels[l].down)
+            v = self.transitions.down(v, levels, l, context)
         v = self.bottom_block(v, levels[depth - 1].edge_sets)
         for l in reversed(range(depth - 1)):
-            v = apply_transition(v, levels[l].up)
+            v = self.transitions.up(v, levels, l, context)
             v = self.up_blocks[l](v, levels[l].edge_sets) + skips[l]
         return self.decoder(v)
