@@ -105,9 +105,11 @@ def main(argv=None) -> int:
                   f"python -m bsms.evaluate {shlex.quote(str(trainer.run_dir))}", file=sys.stderr)
             return 130
         learned = result["rows"][0]
+        error = f"{learned['rmse_all']:.4g} m ({learned['rel_all']:.3g} of the body size)"
+        if "field" in learned:  # Eulerian data: the first field the model predicts, in the data's units
+            error = f"of {learned['field']} {learned['rmse_all']:.4g} ({learned['rel_all']:.3g} of its RMS)"
         print(f"evaluated on {learned['trajectories']} {config.evaluate.split} trajectories: rollout RMSE "
-              f"{learned['rmse_all']:.4g} m ({learned['rel_all']:.3g} of the body size), "
-              f"{learned['unstable']} unstable; report: {result['report']}")
+              f"{error}, {learned['unstable']} unstable; report: {result['report']}")
     return 0
 
 

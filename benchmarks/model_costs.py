@@ -270,8 +270,8 @@ def parse(argv):
     parser.add_argument("--batches", type=int, nargs="+", help="batch sizes (default 2 4 8 16; CUDA up to 64)")
     parser.add_argument("--models", nargs="+", help="labels to run (default all: "
                         + " ".join(label for label, _, _ in VARIANTS) + ")")
-    parser.add_argument("--steps", type=int, help="timed steps per process (default 5; quick 3)")
-    parser.add_argument("--warmup", type=int, default=2, help="untimed steps first (default 2)")
+    parser.add_argument("--steps", type=int, help="timed steps per process (default 5; quick 2)")
+    parser.add_argument("--warmup", type=int, help="untimed steps first (default 2; quick 1)")
     parser.add_argument("--rounds", type=int, help="interleaved rounds (default 2; quick 1)")
     parser.add_argument("--latent", type=int, default=128, help="latent and hidden width (default 128)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads per process (default 2)")
@@ -286,7 +286,8 @@ def parse(argv):
     cuda = args.device.startswith("cuda")
     args.sizes = args.sizes or ([1000, 5000] if args.quick else list(SIZES))
     args.batches = args.batches or ([2] if args.quick else list(CUDA_BATCHES if cuda else BATCHES))
-    args.steps = args.steps or (3 if args.quick else 5)
+    args.steps = args.steps or (2 if args.quick else 5)
+    args.warmup = (1 if args.quick else 2) if args.warmup is None else args.warmup
     args.rounds = args.rounds or (1 if args.quick else 2)
     labels = [label for label, _, _ in VARIANTS]
     args.models = args.models or labels
@@ -298,6 +299,8 @@ def parse(argv):
     for key in ("steps", "rounds", "latent", "threads"):
         if getattr(args, key) < 1:
             parser.error(f"--{key} must be >= 1")
+    if args.warmup < 0:
+        parser.error("--warmup must be >= 0")
     if min(args.sizes) < 100 or min(args.batches) < 1:
         parser.error("--sizes must be >= 100 nodes and --batches >= 1")
     if 5000 not in args.sizes:

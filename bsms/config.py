@@ -1,7 +1,7 @@
 """Typed configs: YAML (safe-loaded) or dicts into dataclasses, validated, with dotted overrides.
 
 :func:`build` turns a nested mapping into a dataclass tree. Every field is checked against its
-annotation (bool, int, float, str, Literal choices, Optional, lists, nested dataclasses);
+annotation (bool, int, float, str, Literal choices, Optional, lists, mappings, nested dataclasses);
 unknown keys and bad values raise one :class:`ConfigError` that names the dotted key and
 what it expects. :func:`apply_overrides` applies command-line ``section.key=value`` strings,
 each value parsed as YAML (``optim.lr=3e-4``, ``train.steps=2000``, ``model.name=meshgraphnets``).
@@ -32,6 +32,8 @@ def _type_name(annotation) -> str:
         return " or ".join(_type_name(a) for a in get_args(annotation))
     if origin is list:
         return f"a list of {_type_name(get_args(annotation)[0])}"
+    if origin is dict:
+        return f"a mapping of names to {_type_name(get_args(annotation)[1])}"
     if annotation is type(None):
         return "null"
     if dataclasses.is_dataclass(annotation):
@@ -58,6 +60,10 @@ def _convert(value, annotation, key: str):
     elif origin is list:
         if isinstance(value, (list, tuple)):
             return [_convert(item, get_args(annotation)[0], f"{key}[{i}]") for i, item in enumerate(value)]
+    elif origin is dict:
+        if isinstance(value, dict):
+            names, values = get_args(annotation)
+            return {_convert(k, names, key): _convert(v, values, f"{key}.{k}") for k, v in value.items()}
     elif annotation is type(None):
         if value is None:
             return None

@@ -19,11 +19,12 @@ import torch
 from tqdm import tqdm
 
 from bsms.config import ConfigError
+from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, type_codes, world_positions
 from bsms.graph import bistride_levels
 from bsms.graph.frames import SubHierarchy
 from bsms.graph.obstacles import ObstacleReach, facet_edges, subdivide_facets
 from bsms.level_graph import FrameArrays, LevelGraph, level_graph
-from datagen.dataset import load
+from datagen.dataset import DatasetError, load
 from datagen.trajectory import NodeType
 
 __all__ = [
@@ -49,6 +50,8 @@ class GraphOptions:
     contact_radius: contact distance in units of the median rest edge length of the body.
         MPM bodies feel a wall about one background cell before they reach it, so it should
         cover a background cell (the family configs use 3 body edges = ~1.5 cells).
+    contact_distance: the contact distance in world units instead (null: contact_radius
+        applies), as datasets give it (DeepMind's deforming plate: 0.03).
     obstacle_spacing: obstacle facets are subdivided until no obstacle edge is longer than
         this many median body edges (0: keep the geometry as stored), so that a body node
         near a wall always finds wall nodes within the contact radius (with spacing 2 and
@@ -70,6 +73,7 @@ class GraphOptions:
     obstacles: bool = True
     contact: bool = True
     contact_radius: float = 3.0
+    contact_distance: float | None = None
     obstacle_spacing: float = 2.0
     obstacle_margin: float | None = 0.0
     self_contact: bool = False
@@ -85,6 +89,9 @@ class GraphOptions:
         if self.obstacle_margin is not None and self.obstacle_margin < 0:
             raise ConfigError(f"config key '{prefix}.obstacle_margin' must be >= 0 (in median rest edge lengths) "
                               f"or null (every obstacle node), got {self.obstacle_margin}")
+        if self.contact_distance is not None and self.contact_distance <= 0:
+            raise ConfigError(f"config key '{prefix}.contact_distance' must be positive (world units) or null, "
+                              f"got {self.contact_distance}")
         if self.contact_radius <= 0:
             raise ConfigError(f"config key '{prefix}.contact_radius' must be positive (in median rest edge "
                               f"lengths), got {self.contact_radius}")
@@ -153,7 +160,8 @@ class Scenario:
     body vertex count, hierarchy: the bi-stride levels of all N nodes, constants (k,),
     frame_dt: time between frames, contact_radius: absolute contact distance; levels: the
     hierarchy prepared for frames that keep some obstacle nodes (:class:`SubHierarchy`); reach:
-    which obstacle nodes a frame keeps (:class:`ObstacleReach`). A frame's graph (:meth:`graph`)
+    which obstacle nodes a frame keeps (:class:`ObstacleReach`); type_codes: (N,) source node
+    type codes fed one-hot instead of the roles (:mod:`bsms.fields`), or None. A frame's graph (:meth:`graph`)
     holds the body nodes and the obstacle nodes within reach of them, so its size changes from
     frame to frame.
     """
@@ -171,11 +179,12 @@ class Scenario:
     options: GraphOptions
     levels: SubHierarchy = field(repr=False)
     reach: ObstacleReach = field(repr=False)
+    type_codes: np.ndarray | None = None
 
     @classmethod
     def build(cls, mesh, options: GraphOptions, *, frame_dt: float, node_type=None, body_id=None,
               obstacle_nodes=None, obstacle_facets=None, params: dict | None = None, cache_dir=None,
-              source: str = "the trajectory") -> Scenario:
+              source: str = "the trajectory", type_codes=None) -> Scenario:
         """The scenario of body ``mesh`` (a datagen Mesh) with optional obstacle geometry."""
         n_body = mesh.n_nodes
         node_type = np.full(n_body, NodeType.FREE, np.int64) if node_type is None else np.asarray(node_type, np.int64)
@@ -183,28 +192,37 @@ class Scenario:
         rest, edges = mesh.nodes, mesh.edges
         edge_length = float(np.median(mesh.edge_lengths))
         if options.obstacles and obstacle_nodes is not None and len(obstacle_nodes) > 0:
+            if type_codes is not None:
+                raise ValueError(f"{source}: node type codes of a source dataset and obstacle geometry do not mix")
             rest, edges, node_type, body_id = _with_obstacles(rest, edges, node_type, body_id, obstacle_nodes,
                                                               obstacle_facets, options.obstacle_spacing * edge_length)
         hierarchy = bistride_levels(edges, rest, levels=options.levels, seeding=options.seeding,
                                     self_loops=options.self_loops, cache_dir=cache_dir)
         constants = np.array([scene_constant(params or {}, name, source) for name in options.constants])
-        radius = options.contact_radius * edge_length
+        radius = options.contact_radius * edge_length if options.contact_distance is None else \
+            options.contact_distance
         reach = None if options.obstacle_margin is None else radius + options.obstacle_margin * edge_length
         return cls(
             rest_pos=rest, node_type=node_type, body_id=body_id, edges=edges, cells=mesh.cells, n_body=n_body,
             hierarchy=hierarchy, constants=constants, frame_dt=float(frame_dt), contact_radius=radius,
             options=options, levels=SubHierarchy(hierarchy, n_body),
             reach=ObstacleReach(n_body, body_id, radius, reach, options.self_contact, edges),
+            type_codes=None if type_codes is None else np.asarray(type_codes, np.int64),
         )
 
     @classmethod
-    def from_trajectory(cls, trajectory, options: GraphOptions, cache_dir=None, source: str = "the trajectory"):
+    def from_trajectory(cls, trajectory, options: GraphOptions, cache_dir=None, source: str = "the trajectory",
+                        spec: FieldSpec | None = None):
+        """The scenario of a stored trajectory (``spec``: its field spec, for its node type codes;
+        default: the one stored with it, :func:`bsms.fields.spec_of`)."""
+        spec = spec_of(trajectory, source) if spec is None else spec
         frame_dt = float(trajectory.times[1] - trajectory.times[0]) if len(trajectory.times) > 1 else float("nan")
         return cls.build(
             trajectory.mesh, options, frame_dt=frame_dt, node_type=trajectory.node_type,
             body_id=trajectory.body_id, obstacle_nodes=trajectory.obstacle_nodes,
             obstacle_facets=trajectory.obstacle_facets, params=trajectory.config.get("params", {}),
             cache_dir=cache_dir, source=source,
+            type_codes=type_codes(spec, trajectory, source),
         )
 
     @property
@@ -226,9 +244,11 @@ class Scenario:
         pad = np.broadcast_to(obstacle_value, body_values.shape[:-2] + (extra, body_values.shape[-1]))
         return np.concatenate([body_values, pad], axis=-2)
 
-    def frame(self, pos: np.ndarray, velocity: np.ndarray, target: np.ndarray | None = None) -> FrameArrays:
+    def frame(self, pos: np.ndarray, velocity: np.ndarray, target: np.ndarray | None = None,
+              fields: np.ndarray | None = None) -> FrameArrays:
         """The graph of one state in numpy: ``pos``, ``velocity`` (and ``target``) (N, d) of all
-        scenario nodes; it holds the body nodes and the obstacle nodes within reach of them
+        scenario nodes (Eulerian data: the fixed mesh, zero, and ``fields`` (N, k) the node
+        inputs of :mod:`bsms.fields`); it holds the body nodes and the obstacle nodes within reach of them
         (``nodes["scenario_nodes"]``: the scenario node of each graph node, sorted)."""
         chosen, contacts = self.reach.frame(np.asarray(pos, np.float64))
         present = self.levels.closure(chosen)
@@ -243,13 +263,18 @@ class Scenario:
                   "scenario_nodes": nodes}
         if target is not None:
             arrays["target"] = np.asarray(target)[nodes]
+        if fields is not None:
+            arrays["fields"] = np.asarray(fields)[nodes]
+        if self.type_codes is not None:
+            arrays["type_code"] = self.type_codes[nodes]
         if len(self.constants):
             arrays["constants"] = np.broadcast_to(self.constants, (len(nodes), len(self.constants)))
         return FrameArrays(arrays, levels, contacts if self.options.contact else None)
 
-    def graph(self, pos: np.ndarray, velocity: np.ndarray, target: np.ndarray | None = None) -> LevelGraph:
+    def graph(self, pos: np.ndarray, velocity: np.ndarray, target: np.ndarray | None = None,
+              fields: np.ndarray | None = None) -> LevelGraph:
         """The :class:`LevelGraph` of one state (see :meth:`frame`)."""
-        return level_graph([self.frame(pos, velocity, target)])
+        return level_graph([self.frame(pos, velocity, target, fields)])
 
 
 @dataclass
@@ -258,30 +283,58 @@ class NoiseOptions:
 
     position: std (m) added to x_t; the input velocity sees it, and the target asks for a
         fraction ``gamma`` of it to be undone in position (gamma = 0 restores the velocity only,
-        1 also the position; MeshGraphNets uses 0.1 for cloth).
+        1 also the position; MeshGraphNets uses 0.1 for cloth). Lagrangian data only.
     velocity: std (m/s) added to the input velocity only; the target restores the velocity.
+        On Eulerian data: the std of the velocity field's noise (the target of its change
+        restores it).
+    fields: Eulerian data: std of the noise on other input fields by name, e.g. ``{density: 10}``
+        (thesis Table 4.4); a predicted change restores it.
     """
 
     position: float = 0.0
     velocity: float = 0.0
     gamma: float = 0.1
+    fields: dict[str, float] = field(default_factory=dict)
 
     def validate(self, prefix: str = "noise") -> None:
         for name in ("position", "velocity"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"config key '{prefix}.{name}' is a standard deviation and must be >= 0, "
                                   f"got {getattr(self, name)}")
+        for name, std in self.fields.items():
+            if std < 0 or name in ("velocity", "position"):
+                raise ConfigError(f"config key '{prefix}.fields.{name}' must be a standard deviation >= 0 of a field "
+                                  f"other than velocity (that is '{prefix}.velocity'), got {std}")
         if not 0.0 <= self.gamma <= 1.0:
             raise ConfigError(f"config key '{prefix}.gamma' must lie in [0, 1], got {self.gamma}")
+
+    def field_std(self, name: str) -> float:
+        """Noise std of Eulerian input field ``name``."""
+        return self.velocity if name == "velocity" else float(self.fields.get(name, 0.0))
+
+    def check(self, spec: FieldSpec, source: str, prefix: str = "noise") -> None:
+        """ConfigError where the noise names what ``spec`` (the data's fields) does not have."""
+        if spec.is_lagrangian and self.fields:
+            raise ConfigError(f"config key '{prefix}.fields' applies to Eulerian data; {source} is Lagrangian (use "
+                              f"'{prefix}.position' and '{prefix}.velocity')")
+        inputs = [f.name for f in spec.inputs]
+        unknown = [name for name in self.fields if name not in inputs]
+        if not spec.is_lagrangian and (self.position > 0 or unknown):
+            key = f"{prefix}.position" if self.position > 0 else f"{prefix}.fields.{unknown[0]}"
+            raise ConfigError(f"config key '{key}' does not apply: {source} is Eulerian (a fixed mesh) with input "
+                              f"fields {', '.join(inputs)}; give their noise as '{prefix}.velocity' and "
+                              f"'{prefix}.fields.NAME'")
 
 
 class FrameDataset(torch.utils.data.Dataset):
     """Every (trajectory, frame t) of some trajectory files as one-step samples t -> t+1.
 
     Scenarios (hierarchies) are built once per file (``cache_dir`` keeps hierarchies across
-    runs); positions are held in memory in float64. Items are addressed by an integer, or by
-    ``(index, noise_seed)`` to add the training noise of ``noise`` drawn from that seed, so the
-    noise of a sample does not depend on which process or batch draws it.
+    runs); states are held in memory in float64: Lagrangian positions and velocities (all
+    scenario nodes), or Eulerian states (:mod:`bsms.fields`). ``spec``: the field spec of the
+    files (they must share one). Items are addressed by an integer, or by ``(index,
+    noise_seed)`` to add the training noise of ``noise`` drawn from that seed, so the noise of
+    a sample does not depend on which process or batch draws it.
     """
 
     def __init__(self, files, options: GraphOptions, noise: NoiseOptions | None = None, cache_dir=None,
@@ -293,22 +346,43 @@ class FrameDataset(torch.utils.data.Dataset):
         self.scenarios: list[Scenario] = []
         self.positions: list[np.ndarray] = []
         self.velocities: list[np.ndarray] = []
+        self.states: list[np.ndarray] = []
+        self.spec: FieldSpec | None = None
         for path in tqdm(self.files, desc="graphs", unit="traj", disable=not progress):
-            trajectory = load(path)
+            trajectory, source = load(path), f"trajectory file {path}"
             if len(trajectory.times) < 2:
                 raise ValueError(f"trajectory file {path} has {len(trajectory.times)} frame(s); training needs >= 2")
-            scenario = Scenario.from_trajectory(trajectory, options, cache_dir, source=f"trajectory file {path}")
-            positions = scenario.full(trajectory.positions)
-            initial = scenario.full(trajectory.velocities[:1], 0.0)[0]
+            spec = self._spec(trajectory, source)
+            scenario = Scenario.from_trajectory(trajectory, options, cache_dir, source=source, spec=spec)
             self.scenarios.append(scenario)
+            if not spec.is_lagrangian:
+                self.states.append(eulerian_state(spec, trajectory, source))
+                continue
+            world = world_positions(spec, trajectory, source)
+            positions = scenario.full(world)
+            initial = scenario.full(initial_velocity(spec, trajectory, world)[None], 0.0)[0]
             self.positions.append(positions)
             self.velocities.append(frame_velocities(positions, initial, scenario.frame_dt))
-        dims = {s.rest_pos.shape[1] for s in self.scenarios}
-        if len(dims) > 1:
-            raise ValueError(f"trajectory files mix dimensions {sorted(dims)}")
-        self.dim = dims.pop()
-        counts = [len(p) - 1 for p in self.positions]
+        self.dim = self.spec.dim
+        counts = [len(p) - 1 for p in (self.positions or self.states)]
         self._starts = np.concatenate([[0], np.cumsum(counts)])
+
+    def _spec(self, trajectory, source: str) -> FieldSpec:
+        """The field spec of one file, the same as the others'; the options checked against it."""
+        try:
+            spec = spec_of(trajectory, source)
+        except ValueError as exc:
+            raise DatasetError(str(exc)) from None
+        if self.spec is None:
+            if self.options.contact and not spec.is_lagrangian:
+                raise ConfigError(f"config key 'graph.contact' must be false for Eulerian data ({source} holds "
+                                  "fields on a fixed mesh: no world edges, thesis Table 4.2)")
+            self.noise.check(spec, source)
+            self.spec = spec
+        elif spec != self.spec:
+            raise DatasetError(f"{source} holds {spec.describe()}, but {self.files[0]} holds "
+                               f"{self.spec.describe()}; trajectory files mix dimensions or fields")
+        return spec
 
     def __len__(self) -> int:
         return int(self._starts[-1])
@@ -323,6 +397,8 @@ class FrameDataset(torch.utils.data.Dataset):
     def __getitem__(self, key) -> LevelGraph:
         index, noise_seed = key if isinstance(key, tuple) else (key, None)
         k, t = self.locate(int(index))
+        if self.states:
+            return self._eulerian(self.scenarios[k], self.states[k], t, noise_seed)
         scenario, positions, velocities = self.scenarios[k], self.positions[k], self.velocities[k]
         pos, velocity = positions[t].copy(), velocities[t].copy()
         target = velocities[t + 1] - velocities[t]
@@ -335,3 +411,23 @@ class FrameDataset(torch.utils.data.Dataset):
             velocity += dx / scenario.frame_dt + dv
             target = target - (1.0 + self.noise.gamma) * dx / scenario.frame_dt - dv
         return scenario.graph(pos, velocity, target)
+
+    def _eulerian(self, scenario: Scenario, states: np.ndarray, t: int, noise_seed) -> LevelGraph:
+        """The sample of frame t of an Eulerian trajectory: noise on the input fields of free
+        nodes, removed again by the targets of the fields whose change is predicted."""
+        spec = self.spec
+        inputs, target = spec.input_values(states[t]), spec.target(states[t], states[t + 1])
+        if noise_seed is not None:
+            rng = np.random.default_rng(noise_seed)
+            free = (scenario.node_type == NodeType.FREE)[:, None]
+            changes = {f.name for f in spec.outputs if f.target == "change"}
+            start = 0
+            for f in spec.inputs:
+                std = self.noise.field_std(f.name)
+                if std > 0:
+                    noise = free * rng.normal(0.0, std, (len(inputs), f.width))
+                    inputs[:, start: start + f.width] += noise
+                    if f.name in changes:
+                        target[:, spec.output_columns(f.name)] -= noise
+                start += f.width
+        return scenario.graph(scenario.rest_pos, np.zeros_like(scenario.rest_pos), target, inputs)

@@ -7,6 +7,10 @@ reproduce the stored trajectory -- and at cheaper settings. Every learned model 
 solver setting becomes one point (wall seconds per simulated second, rollout RMSE) of the
 speed-accuracy chart, timed in this same run on this same machine.
 
+Datasets converted from other sources (DeepMind's, the BSMS-GNN authors') have no scene for the
+solver to re-run: evaluate them with ``--no-solver`` (config: ``evaluate.solver: []``); their
+Eulerian fields are measured per field (RMSE of velocity, density, pressure; :mod:`bsms.fields`).
+
 Writes ``RUN_DIR/report.md`` and ``RUN_DIR/evaluation/``: metrics.json, speed_accuracy.csv
 and .md, speed_accuracy.png, error_vs_step.png, training_curve.png, rollout_<k>.gif and an
 XDMF time series of the first rollout.
@@ -31,8 +35,9 @@ from bsms import viz
 from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.data import Scenario
-from bsms.rollout import body_size, peak_memory_mb, rollout_metrics, rollouts, summarize
-from bsms.run import EvaluateConfig, load_model, resolve_device, run_dataset_config, split_files
+from bsms.fields import eulerian_state, initial_velocity, spec_of, world_positions
+from bsms.rollout import body_size, field_metrics, peak_memory_mb, rollout_metrics, rollouts, summarize
+from bsms.run import EvaluateConfig, convert_fix, dataset_folder, load_model, resolve_device, split_files
 from bsms.solver_runs import SOLVER_SETTINGS, frame_dt, free_nodes, run_solver
 from datagen.atomic import atomic_path
 from datagen.config import output_folder
@@ -59,15 +64,28 @@ class _Results:
 def _learned(model, config, trajectories, cache_dir, frames: list[int], options: EvaluateConfig,
              device) -> list[tuple[dict, object]]:
     """(metrics, rollout) of ``model`` on each of ``trajectories``, rolled out as one batch."""
-    scenarios = [Scenario.from_trajectory(t, config.graph, cache_dir) for t in trajectories]
-    known = [s.full(t.positions[: n + 1]) for s, t, n in zip(scenarios, trajectories, frames, strict=True)]
-    initial = [s.full(t.velocities[:1], 0.0)[0] for s, t in zip(scenarios, trajectories, strict=True)]
-    results = rollouts(model, scenarios, [k[0] for k in known], initial, frames, known, device=device)
+    spec = model.spec
+    scenarios = [Scenario.from_trajectory(t, config.graph, cache_dir, spec=spec) for t in trajectories]
+    if spec.is_lagrangian:
+        truths = [world_positions(spec, t) for t in trajectories]
+        known = [s.full(w[: n + 1]) for s, w, n in zip(scenarios, truths, frames, strict=True)]
+        initial = [s.full(initial_velocity(spec, t, w)[None], 0.0)[0]
+                   for s, t, w in zip(scenarios, trajectories, truths, strict=True)]
+        results = rollouts(model, scenarios, [k[0] for k in known], initial, frames, known, device=device)
+    else:
+        truths = [eulerian_state(spec, t)[: n + 1] for t, n in zip(trajectories, frames, strict=True)]
+        results = rollouts(model, scenarios, [s.rest_pos for s in scenarios],
+                           [np.zeros_like(s.rest_pos) for s in scenarios], frames, device=device,
+                           initial_states=[truth[0] for truth in truths], known_states=truths)
     out = []
-    for scenario, trajectory, n, result in zip(scenarios, trajectories, frames, results, strict=True):
-        predicted = result.positions[:, : scenario.n_body]
-        metrics = rollout_metrics(predicted, trajectory.positions[: n + 1], free_nodes(trajectory),
-                                  body_size(trajectory.mesh.nodes), options.bound)
+    for scenario, trajectory, n, result, truth in zip(scenarios, trajectories, frames, results, truths, strict=True):
+        if spec.is_lagrangian:
+            metrics = rollout_metrics(result.positions[:, : scenario.n_body], truth[: n + 1], free_nodes(trajectory),
+                                      body_size(trajectory.mesh.nodes), options.bound)
+        else:
+            fields = field_metrics(spec, result.states, truth, free_nodes(trajectory), options.bound)
+            main = fields[spec.outputs[0].name]
+            metrics = {**main, "body_size": main["scale"], "field": spec.outputs[0].name, "fields": fields}
         metrics["seconds_per_step"] = result.seconds_per_step
         metrics["seconds_per_sim_second"] = result.seconds_per_step / scenario.frame_dt
         metrics["graph_nodes_ratio"] = float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body
@@ -80,19 +98,29 @@ def _frames(trajectory, options: EvaluateConfig) -> int:
     return available if options.steps is None else min(options.steps, available)
 
 
-def _pictures(out: Path, k: int, trajectory, result, frames: int) -> Path:
-    """GIF of rollout ``k`` (and, for the first, its XDMF time series)."""
+def _pictures(out: Path, k: int, trajectory, result, frames: int, spec) -> Path:
+    """GIF of rollout ``k`` (and, for the first, its XDMF time series); Eulerian data: the fixed
+    mesh coloured by the error of the first output field, and every field in the XDMF."""
     body = result.positions[:, : trajectory.mesh.n_nodes]
-    obstacles = None
+    obstacles, colour, data = None, None, {}
     if trajectory.obstacle_nodes is not None and len(trajectory.obstacle_nodes):
         obstacles = (trajectory.obstacle_nodes, trajectory.obstacle_facets)
-    gif = viz.rollout_gif(trajectory.mesh.cells, body, out / f"rollout_{k}.gif",
-                          truth=trajectory.positions[: frames + 1], obstacles=obstacles,
-                          frame_dt=frame_dt(trajectory))
+    if spec.is_lagrangian:
+        truth = world_positions(spec, trajectory)[: frames + 1]
+        data["error"] = np.linalg.norm(body - truth[: len(body)], axis=-1)
+    else:
+        truth = trajectory.positions[: frames + 1]
+        states = eulerian_state(spec, trajectory)[: len(result.states)]
+        for f in spec.state_fields:
+            cols = spec.columns(f.name)
+            data[f.name] = result.states[..., cols]
+            data[f"{f.name}_error"] = np.linalg.norm(result.states[..., cols] - states[..., cols], axis=-1)
+        main = spec.outputs[0].name
+        colour = (data[f"{main}_error"], f"{main} error")
+    gif = viz.rollout_gif(trajectory.mesh.cells, body, out / f"rollout_{k}.gif", truth=truth, obstacles=obstacles,
+                          frame_dt=frame_dt(trajectory), colour=colour)
     if k == 0:
-        error = np.linalg.norm(body - trajectory.positions[: len(body)], axis=-1)
-        viz.write_xdmf(out / "rollout_0.xdmf", trajectory.mesh.cells, body, trajectory.times[: len(body)],
-                       {"error": error})
+        viz.write_xdmf(out / "rollout_0.xdmf", trajectory.mesh.cells, body, trajectory.times[: len(body)], data)
     return gif
 
 
@@ -122,7 +150,8 @@ def _roll_out(results: _Results, methods, trajectories, cache_dir: Path, options
                                                   start=first):
                 results.learned[label].append(metrics)
                 if label == methods[0][0] and k < options.gifs:
-                    results.pictures.append(_pictures(out, k, trajectories[k], result, frames[k - first]))
+                    results.pictures.append(_pictures(out, k, trajectories[k], result, frames[k - first],
+                                                      model.spec))
             results.memory[label] = peak_memory_mb(device)
 
 
@@ -202,18 +231,19 @@ def evaluate(run_dir, compare=(), options: EvaluateConfig | None = None, progres
 
 
 def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateConfig, progress: bool) -> dict:
-    dataset_name = run_dataset_config(run_dir, config)["dataset"]
-    folder = Path(config.dataset.root) / dataset_name
-    files = split_files(folder, options.split)[: options.trajectories]
+    folder, dataset_name = dataset_folder(run_dir, config)
+    fix = None if config.dataset.kind == "mpm" else convert_fix(config.dataset.kind, folder, options.split)
+    files = split_files(folder, options.split, fix)[: options.trajectories]
     methods = _methods(model, config, compare)
+    trajectories = [load(path) for path in files]
+    _check_data(methods, trajectories, files, options, config)
     out = run_dir / "evaluation"
     out.mkdir(parents=True, exist_ok=True)
     results = _Results({label: [] for label, _, _ in methods}, {SOLVER_SETTINGS[s]: [] for s in options.solver})
-    trajectories = [load(path) for path in files]
     _roll_out(results, methods, trajectories, folder / "hierarchies", options, out, progress)
     _run_solvers(results, trajectories, options, progress)
     results.rows = _summary_rows(results)
-    _write_tables(out, results.rows)
+    _write_tables(out, results.rows, _columns(model.spec))
     _charts(out, results, frame_dt(trajectories[0]), options.bound)
     training = _training_curve(run_dir, out)
     details = {"run": str(run_dir), "split": options.split, "trajectories": [str(f) for f in files],
@@ -221,9 +251,27 @@ def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateCon
                "solver": results.solver}
     with atomic_path(out / "metrics.json") as tmp:
         tmp.write_text(json.dumps(details, indent=1, default=_json_default))
-    heading = _heading(config, state, options, len(files), dataset_name)
-    report = _write_report(run_dir, heading, results, options.bound, training)
+    heading = _heading(config, state, options, len(files), dataset_name, model.spec)
+    report = _write_report(run_dir, heading, results, options.bound, training, model.spec)
     return {"rows": results.rows, "report": report}
+
+
+def _check_data(methods, trajectories, files, options: EvaluateConfig, config) -> None:
+    """Errors before any work: solver runs asked of data no solver made; a model whose field spec
+    (:mod:`bsms.fields`) is not the data's."""
+    if options.solver and (config.dataset.kind != "mpm" or any("scene" not in t.config for t in trajectories)):
+        raise ConfigError(f"the trajectories of {Path(files[0]).parent.parent} were converted from another source "
+                          f"(dataset.kind: {config.dataset.kind}), so there is no MPM scene for the solver to re-run; "
+                          "evaluate with --no-solver (config: evaluate.solver: [])")
+    for path, trajectory in zip(files, trajectories, strict=True):
+        try:
+            spec = spec_of(trajectory, f"trajectory file {path}")
+        except ValueError as exc:
+            raise DatasetError(str(exc)) from None
+        for label, model, _ in methods:
+            if spec != model.spec:
+                raise DatasetError(f"run {label} learned {model.spec.describe()}, but trajectory file {path} holds "
+                                   f"{spec.describe()}; evaluate a run on data like its own")
 
 
 def _json_default(value):
@@ -257,38 +305,59 @@ _COLUMNS = [
 ]
 
 
-def _table(rows: list[dict]) -> str:
-    lines = ["| " + " | ".join(title for _, title in _COLUMNS) + " |", "|" + "---|" * len(_COLUMNS)]
-    lines += ["| " + " | ".join(_fmt(row.get(key)) for key, _ in _COLUMNS) + " |" for row in rows]
+def _columns(spec) -> list[tuple[str, str]]:
+    """The table's columns; Eulerian data: errors of the first output field, relative to its scale."""
+    if spec.is_lagrangian:
+        return _COLUMNS
+    main = spec.outputs[0].name
+    return [(key, title.replace("(m)", f"({main})").replace("body size", f"{main} scale")) for key, title in _COLUMNS]
+
+
+def _table(rows: list[dict], columns=_COLUMNS) -> str:
+    lines = ["| " + " | ".join(title for _, title in columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(_fmt(row.get(key)) for key, _ in columns) + " |" for row in rows]
     return "\n".join(lines)
 
 
-def _write_tables(out: Path, rows: list[dict]) -> None:
+def _field_table(rows: list[dict]) -> str:
+    """RMSE per field of every learned row (Eulerian data) as one table."""
+    columns = [("label", "method"), ("field", "field"), ("rmse_1", "RMSE@1"), ("rmse_50", "RMSE@50"),
+               ("rmse_all", "RMSE all"), ("scale", "field scale (RMS)"), ("rel_all", "RMSE all / scale"),
+               ("unstable", "unstable rollouts")]
+    flat = [{**metrics, "label": row["label"], "field": name}
+            for row in rows if "fields" in row for name, metrics in row["fields"].items()]
+    return _table(flat, columns)
+
+
+def _write_tables(out: Path, rows: list[dict], columns=_COLUMNS) -> None:
     with atomic_path(out / "speed_accuracy.csv") as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, [key for key, _ in _COLUMNS], extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
     with atomic_path(out / "speed_accuracy.md") as tmp:
-        tmp.write_text(_table(rows) + "\n")
+        tmp.write_text(_table(rows, columns) + "\n")
 
 
-def _heading(config, state, options: EvaluateConfig, n_files: int, dataset_name: str) -> list[str]:
+def _heading(config, state, options: EvaluateConfig, n_files: int, dataset_name: str, spec) -> list[str]:
     steps = "all frames" if options.steps is None else f"{options.steps} steps"
+    errors = "Errors are position RMSE over free body nodes (m)" if spec.is_lagrangian else (
+        f"Data: {spec.describe()}. Errors are RMSE of the `{spec.outputs[0].name}` field over free nodes (the "
+        "data's units; every field under 'RMSE per field')")
     return [
         f"# Evaluation of run `{config.name}`", "",
         f"Model `{config.model.name}` after {int(state['step'])} training steps; {n_files} `{options.split}` "
-        f"trajectories of dataset `{dataset_name}`; rollouts from frame 0 over {steps}. Errors are position "
-        "RMSE over free body nodes (m); times are wall seconds on this machine, measured in this run.",
+        f"trajectories of dataset `{dataset_name}`; rollouts from frame 0 over {steps}. {errors}; times are wall "
+        "seconds on this machine, measured in this run.",
     ]
 
 
-def _stability(rows: list[dict], bound: float) -> list[str]:
+def _stability(rows: list[dict], bound: float, size: str = "body size") -> list[str]:
     lines = []
     for row in rows:
         state = "stable on every trajectory" if not row["unstable"] else \
             f"unstable on {row['unstable']} of {row['trajectories']} (first at step {row.get('first_unstable_step')})"
         failure = f"; the solver stopped: {row['failed']}" if row.get("failed") else ""
-        lines.append(f"- {row['label']}: {state} (bound {bound} x body size){failure}")
+        lines.append(f"- {row['label']}: {state} (bound {bound} x {size}){failure}")
     truth = _ground_truth_row(rows)
     if truth is not None and "max_difference_from_stored" in truth:
         lines += ["", f"The solver re-run at the data's settings reproduces the stored trajectories to "
@@ -302,14 +371,18 @@ def _stability(rows: list[dict], bound: float) -> list[str]:
     return lines
 
 
-def _write_report(run_dir: Path, heading: list[str], results: _Results, bound: float, training) -> Path:
+def _write_report(run_dir: Path, heading: list[str], results: _Results, bound: float, training, spec) -> Path:
+    size = "body size" if spec.is_lagrangian else f"{spec.outputs[0].name} scale"
+    fields = ["## RMSE per field", "", _field_table(results.rows), ""] if not spec.is_lagrangian else []
     lines = [
-        *heading, "", "## Metrics", "", _table(results.rows), "",
+        *heading, "", "## Metrics", "", _table(results.rows, _columns(spec)), "", *fields,
         "## Speed against accuracy", "", "![speed against accuracy](evaluation/speed_accuracy.png)", "",
         "The solver at the data's settings is the ground truth (no error of its own); cheaper solver "
-        "settings are the honest baseline a surrogate must beat.", "",
+        "settings are the honest baseline a surrogate must beat." if results.solver else
+        "No solver ran (--no-solver, or evaluate.solver: []; converted datasets have no scene to re-run): the "
+        "chart shows the learned models alone.", "",
         "## Error against time", "", "![rollout error](evaluation/error_vs_step.png)", "",
-        "## Stability", "", *_stability(results.rows, bound),
+        "## Stability", "", *_stability(results.rows, bound, size),
     ]
     if training is not None:
         lines += ["", "## Training", "", "![training curve](evaluation/training_curve.png)"]

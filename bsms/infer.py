@@ -157,6 +157,10 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     """
     run_dir = Path(run_dir)
     model, config, state = load_model(run_dir, which)
+    if config.dataset.kind != "mpm":
+        raise InferError(f"run {run_dir} was trained on a converted {config.dataset.kind} dataset, not on an MPM "
+                         f"family whose scene a mesh could be placed in; roll it out on its own data with "
+                         f"python -m bsms.evaluate {run_dir} --no-solver")
     dim = int(state["dim"])
     paths = [Path(m) for m in meshes]
     if not paths:

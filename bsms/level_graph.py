@@ -33,7 +33,7 @@ _OFFSETS = {
 _NODE_FIELDS = {
     "rest_pos": torch.float32, "pos": torch.float32, "velocity": torch.float32, "node_type": torch.long,
     "target": torch.float32, "loss_mask": torch.bool, "constants": torch.float32, "frame_dt": torch.float32,
-    "scenario_nodes": torch.long,
+    "scenario_nodes": torch.long, "fields": torch.float32, "type_code": torch.long,
 }
 
 
@@ -43,10 +43,11 @@ class LevelGraph(Data):
 
     x-like fields on level-0 nodes: ``pos``, ``rest_pos``, ``velocity`` (N, d),
     ``node_type`` (N,), ``loss_mask`` (N,), optional ``constants`` (N, k), ``target`` (N, d),
-    ``frame_dt`` (N,), ``scenario_nodes`` (N,). Per level: ``nodes_{l}``, ``edge_index_{l}``,
-    ``contact_index_{l}``, ``down_*_{l}`` and ``up_*_{l}`` (rows, cols, weights) of the
-    transitions between l and l+1 (:meth:`transition`), ``n_nodes_{l}`` (an int; for a batch,
-    one count per graph).
+    ``frame_dt`` (N,), ``scenario_nodes`` (N,), and for source datasets (:mod:`bsms.fields`)
+    ``fields`` (N, k) Eulerian node inputs and ``type_code`` (N,) node type codes. Per level:
+    ``nodes_{l}``, ``edge_index_{l}``, ``contact_index_{l}``, ``down_*_{l}`` and ``up_*_{l}``
+    (rows, cols, weights) of the transitions between l and l+1 (:meth:`transition`),
+    ``n_nodes_{l}`` (an int; for a batch, one count per graph).
     """
 
     def __inc__(self, key: str, value, *args, **kwargs):

@@ -2,10 +2,14 @@
 
 A rollout starts from frame 0 (positions and the initial velocity) and applies the model
 step after step: v_{t+1} = v_t + dv, x_{t+1} = x_t + dt v_{t+1} for free nodes; clamped and
-obstacle nodes follow their known motion (the trajectory's positions, or rest).
+obstacle nodes follow their known motion (the trajectory's positions, or rest). On Eulerian
+data (:mod:`bsms.fields`) the state is the node fields on the fixed mesh: each output field
+is advanced by its predicted change or replaced by its predicted value, and the fields of
+prescribed nodes (inflow, walls, airfoil) come from the data.
 
-Metrics (:func:`rollout_metrics`) use the free body nodes: the error of a step is the RMSE
-over those nodes of the position error vector, sqrt(mean_i |x_i - x_i^true|^2) (m);
+Metrics (:func:`rollout_metrics`; per Eulerian field :func:`field_metrics`) use the free body
+nodes: the error of a step is the RMSE over those nodes of the position error vector,
+sqrt(mean_i |x_i - x_i^true|^2) (m);
 ``rmse_1`` / ``rmse_50`` are the errors at steps 1 and 50, ``rmse_all`` the RMSE over all
 steps and nodes. Relative values divide by the body size (the diagonal of the rest body's
 bounding box). A rollout is unstable from the first step whose error exceeds
@@ -28,7 +32,8 @@ from bsms.level_graph import level_graph
 from bsms.models.precision import network_dtype
 
 __all__ = [
-    "Rollout", "rollout", "rollouts", "rollout_metrics", "summarize", "body_size", "peak_memory_mb", "DEFAULT_BOUND",
+    "Rollout", "rollout", "rollouts", "rollout_metrics", "field_metrics", "summarize", "body_size", "peak_memory_mb",
+    "DEFAULT_BOUND",
 ]
 
 DEFAULT_BOUND = 0.5  # relative error (of the body size) at which a rollout counts as unstable
@@ -50,7 +55,7 @@ class Rollout:
     rollout of a batch its share of the batch's step (the step's time over the rollouts in it);
     finite: whether the whole rollout stayed finite (it stops at the first non-finite step);
     graph_nodes: (T-1, L) node count of each level of each step's graph (body and obstacle nodes
-    in reach)."""
+    in reach); states: (T, N, k) Eulerian node fields (:mod:`bsms.fields`), None for Lagrangian data."""
 
     positions: np.ndarray
     velocities: np.ndarray
@@ -58,6 +63,7 @@ class Rollout:
     finite: bool = True
     extra: dict = field(default_factory=dict)
     graph_nodes: np.ndarray = field(default_factory=lambda: np.zeros((0, 1), np.int64))
+    states: np.ndarray | None = None
 
     @property
     def seconds_per_step(self) -> float:
@@ -81,12 +87,24 @@ class _Track:
     seconds: list = field(default_factory=list)
     graph_nodes: list = field(default_factory=list)
     finite: bool = True
+    spec: object = None
+    states: np.ndarray | None = None
+    known_states: np.ndarray | None = None
 
     def running(self, t: int) -> bool:
         return self.finite and t < self.steps
 
+    def frame(self, t: int):
+        """The graph arrays of frame t (Eulerian: the spec's input fields on the fixed mesh)."""
+        fields = None if self.states is None else self.spec.input_values(self.states[t])
+        return self.scenario.frame(self.positions[t], self.velocities[t], fields=fields)
+
     def advance(self, t: int, change: np.ndarray) -> None:
-        """Frame t + 1 from frame t and the velocity change (N, d) of every scenario node."""
+        """Frame t + 1 from frame t and the model's output (N, node_out) of every scenario node:
+        the velocity change (Lagrangian) or the spec's outputs (Eulerian)."""
+        if self.states is not None:
+            self._advance_fields(t, change)
+            return
         kinematic, dt = self.scenario.kinematic, self.scenario.frame_dt
         velocity = self.velocities[t] + change
         position = self.positions[t] + dt * velocity
@@ -100,30 +118,48 @@ class _Track:
             self.finite = False
             self.steps = t + 1
 
+    def _advance_fields(self, t: int, output: np.ndarray) -> None:
+        state = self.spec.advance(self.states[t], output)
+        kinematic = self.scenario.kinematic
+        state[kinematic] = (self.states[t] if self.known_states is None else self.known_states[t + 1])[kinematic]
+        self.states[t + 1] = state
+        self.positions[t + 1], self.velocities[t + 1] = self.positions[t], self.velocities[t]
+        if not np.isfinite(state).all():
+            self.finite = False
+            self.steps = t + 1
+
     def result(self) -> Rollout:
         n = self.steps + 1
         levels = self.scenario.levels.n_levels
         return Rollout(self.positions[:n], self.velocities[:n], np.asarray(self.seconds), self.finite,
-                       graph_nodes=np.array(self.graph_nodes, np.int64).reshape(len(self.graph_nodes), levels))
+                       graph_nodes=np.array(self.graph_nodes, np.int64).reshape(len(self.graph_nodes), levels),
+                       states=None if self.states is None else self.states[:n])
 
 
-def _track(scenario: Scenario, x0: np.ndarray, v0: np.ndarray, steps: int, known) -> _Track:
-    if known is not None and len(known) < steps + 1:
-        raise ValueError(f"known_positions has {len(known)} frames; a rollout of {steps} steps needs {steps + 1}")
+def _track(scenario: Scenario, x0: np.ndarray, v0: np.ndarray, steps: int, known, spec=None, s0=None,
+           known_states=None) -> _Track:
+    for name, series in (("known_positions", known), ("known_states", known_states)):
+        if series is not None and len(series) < steps + 1:
+            raise ValueError(f"{name} has {len(series)} frames; a rollout of {steps} steps needs {steps + 1}")
     positions = np.empty((steps + 1, *np.shape(x0)))
     velocities = np.empty_like(positions)
     positions[0], velocities[0] = x0, v0
-    return _Track(scenario, positions, velocities, known, int(steps))
+    states = None
+    if s0 is not None:
+        states = np.empty((steps + 1, *np.shape(s0)))
+        states[0] = s0
+    return _Track(scenario, positions, velocities, known, int(steps), spec=spec, states=states,
+                  known_states=known_states)
 
 
 def _changes(model, tracks: list[_Track], t: int, device: torch.device, precision: str) -> list[np.ndarray]:
     """One model call on the graphs of frame t of ``tracks`` as one batch -> (N_k, d) velocity
     changes of every scenario node (zero on nodes outside the frame's graph)."""
-    frames = [k.scenario.frame(k.positions[t], k.velocities[t]) for k in tracks]
+    frames = [k.frame(t) for k in tracks]
     change = model.velocity_change(level_graph(frames).to(device), precision=precision).double().cpu().numpy()
     out, start = [], 0
     for k, frame in zip(tracks, frames, strict=True):
-        full = np.zeros_like(k.positions[t])
+        full = np.zeros((len(k.positions[t]), change.shape[1]))
         full[frame.nodes["scenario_nodes"]] = change[start: start + frame.n_nodes]
         start += frame.n_nodes
         k.graph_nodes.append([len(level.nodes) for level in frame.levels])
@@ -134,13 +170,18 @@ def _changes(model, tracks: list[_Track], t: int, device: torch.device, precisio
 @torch.no_grad()
 def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_velocities: list, steps,
              known_positions: list | None = None, device="cpu", progress: bool = False,
-             warmup: int = 1, precision: str = "auto") -> list[Rollout]:
+             warmup: int = 1, precision: str = "auto", initial_states: list | None = None,
+             known_states: list | None = None) -> list[Rollout]:
     """Roll ``model`` out on several scenarios at once: every step is one model call on their
     graphs joined into one (:func:`~bsms.level_graph.level_graph`), and each rollout equals its
     rollout alone to float32 round-off. Arguments as :func:`rollout`, one per scenario
     (``steps``: an int or one per scenario; ``known_positions``: None, or one array or None per
     scenario). A rollout that ends (its steps, or a non-finite state) leaves the batch; the
     others go on. Each rollout's ``step_seconds`` are its share of the batch's steps.
+
+    A model of Eulerian data (``model.spec``, :mod:`bsms.fields`) needs ``initial_states``: one
+    (N, k) state of the spec's fields per scenario; ``known_states``: None, or one (>= steps + 1,
+    N, k) array (or None) per scenario whose rows of prescribed nodes give their fields.
     """
     device = torch.device(device)
     network_dtype(precision, device)  # a bad precision fails before any work
@@ -152,8 +193,15 @@ def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_
         raise ValueError(f"give one initial state, step count and known_positions (or None) per scenario; got "
                          f"{n} scenarios, {len(initial_positions)} initial positions, {len(initial_velocities)} "
                          f"initial velocities, {len(steps)} step counts, {len(known_positions)} known_positions")
-    tracks = [_track(*args) for args in zip(scenarios, initial_positions, initial_velocities, steps, known_positions,
-                                            strict=True)]
+    spec = getattr(model, "spec", None)
+    eulerian = spec is not None and not spec.is_lagrangian
+    if eulerian and (initial_states is None or len(initial_states) != n):
+        raise ValueError(f"the model learned Eulerian fields ({spec.describe()}); give one initial state per scenario")
+    initial_states = list(initial_states) if eulerian else [None] * n
+    known_states = [None] * n if known_states is None else list(known_states)
+    tracks = [_track(*args, spec, s0, ks) for *args, s0, ks in zip(
+        scenarios, initial_positions, initial_velocities, steps, known_positions, initial_states, known_states,
+        strict=True)]
     for _ in range(warmup):
         _changes(model, tracks, 0, device, precision)
         for k in tracks:
@@ -174,7 +222,8 @@ def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_
 
 def rollout(model, scenario: Scenario, initial_positions: np.ndarray, initial_velocity: np.ndarray, steps: int,
             known_positions: np.ndarray | None = None, device="cpu", progress: bool = False,
-            warmup: int = 1, precision: str = "auto") -> Rollout:
+            warmup: int = 1, precision: str = "auto", initial_state: np.ndarray | None = None,
+            known_state: np.ndarray | None = None) -> Rollout:
     """Roll ``model`` out for ``steps`` steps from frame 0.
 
     initial_positions, initial_velocity: (N, d) of all scenario nodes at frame 0.
@@ -184,9 +233,12 @@ def rollout(model, scenario: Scenario, initial_positions: np.ndarray, initial_ve
         costs such as allocator growth and kernel selection are not per-step costs).
     precision: the core network's number format, ``auto`` (bfloat16 where the hardware has
         it), ``bf16`` or ``f32`` (:mod:`bsms.models.precision`).
+    initial_state, known_state: Eulerian data: the (N, k) state of frame 0 and the (>= steps + 1,
+        N, k) states whose rows of prescribed nodes give their fields (:func:`rollouts`).
     """
     return rollouts(model, [scenario], [initial_positions], [initial_velocity], [steps], [known_positions],
-                    device=device, progress=progress, warmup=warmup, precision=precision)[0]
+                    device=device, progress=progress, warmup=warmup, precision=precision,
+                    initial_states=None if initial_state is None else [initial_state], known_states=[known_state])[0]
 
 
 def body_size(rest_positions: np.ndarray) -> float:
@@ -224,15 +276,34 @@ def rollout_metrics(predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray, 
     return out
 
 
+def field_metrics(spec, predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray,
+                  bound: float = DEFAULT_BOUND) -> dict:
+    """Errors of an Eulerian rollout per field of ``spec`` (:mod:`bsms.fields`): predicted
+    (T_p, N, k) and truth (T, N, k) states -> {field: :func:`rollout_metrics`}, each relative
+    to (and unstable beyond ``bound`` times) the field's scale, the RMS over the free nodes and
+    frames of the true field's magnitude."""
+    out = {}
+    for f in spec.state_fields:
+        cols = spec.columns(f.name)
+        scale = float(np.sqrt(np.mean(np.sum(truth[:, mask, cols] ** 2, axis=-1)))) if mask.any() else 0.0
+        out[f.name] = rollout_metrics(predicted[..., cols], truth[..., cols], mask, scale or 1.0, bound)
+        out[f.name]["scale"] = out[f.name].pop("body_size")
+    return out
+
+
 def summarize(metrics: list[dict]) -> dict:
-    """Mean and std over trajectories of each scalar metric; count of unstable rollouts."""
+    """Mean and std over trajectories of each scalar metric; count of unstable rollouts; for
+    Eulerian rollouts the same per field (``fields``)."""
     out = {"trajectories": len(metrics), "unstable": sum(m["unstable_step"] is not None for m in metrics)}
     for key in ("rmse_1", "rmse_50", "rmse_all", "rel_1", "rel_50", "rel_all", "seconds_per_step",
-                "seconds_per_sim_second", "graph_nodes_ratio"):
+                "seconds_per_sim_second", "graph_nodes_ratio", "scale"):
         values = np.array([m[key] for m in metrics if key in m], dtype=float)
         if len(values):
             out[key] = float(np.mean(values))
             out[f"{key}_std"] = float(np.std(values))
     steps = [m["unstable_step"] for m in metrics if m["unstable_step"] is not None]
     out["first_unstable_step"] = min(steps) if steps else None
+    if metrics and "fields" in metrics[0]:
+        out["field"] = metrics[0].get("field")
+        out["fields"] = {name: summarize([m["fields"][name] for m in metrics]) for name in metrics[0]["fields"]}
     return out

@@ -21,6 +21,7 @@ import yaml
 from bsms.checkpoint import CheckpointError, load_checkpoint
 from bsms.config import ConfigError, apply_overrides, build, load, to_dict
 from bsms.data import GraphOptions, NoiseOptions, saved_graph_options
+from bsms.fields import FieldSpec
 from bsms.models.simulator import LearnedSimulator
 from bsms.rollout import DEFAULT_BOUND
 from bsms.solver_runs import SOLVER_SETTINGS
@@ -33,14 +34,17 @@ from datagen.metadata import write_metadata
 __all__ = [
     "Config", "DatasetConfig", "ModelConfig", "OptimConfig", "TrainConfig", "EvaluateConfig", "load_config",
     "checkpoint_path", "find_checkpoint", "write_run_files", "prepare_dataset", "run_dataset_config",
-    "split_files", "build_model", "load_model", "resolve_device",
+    "dataset_folder", "convert_fix", "split_files", "build_model", "load_model", "resolve_device",
 ]
 
 
 # ----------------------------------------------------------------------------- config
 @dataclass
 class DatasetConfig:
-    """config: the dataset YAML (``configs/datasets/...``); root: folder of datasets;
+    """kind: ``mpm`` (the solver's datasets), or ``deepmind`` / ``authors`` (a dataset converted
+    with ``python -m bsms.datasets convert KIND SRC DST``, never generated).
+    config (mpm): the dataset YAML (``configs/datasets/...``); root: mpm: the folder of
+    datasets (the dataset is ``root/<its name>``); converted: the converted folder itself (DST).
     generate: generate missing trajectories (resumable) before training; workers: processes
     for that."""
 
@@ -48,9 +52,14 @@ class DatasetConfig:
     root: str = "data"
     generate: bool = True
     workers: int = 1
+    kind: Literal["mpm", "deepmind", "authors"] = "mpm"
 
     def validate(self, prefix: str) -> None:
-        if not self.config:
+        if self.kind != "mpm":
+            if self.config:
+                raise ConfigError(f"config key '{prefix}.config' applies to MPM datasets; a {self.kind} dataset is "
+                                  f"the folder '{prefix}.root' names (remove '{prefix}.config')")
+        elif not self.config:
             raise ConfigError(f"config key '{prefix}.config' is required: the dataset config YAML, "
                               "e.g. configs/datasets/glyphs_quick.yaml")
         if self.workers < 1:
@@ -66,9 +75,10 @@ class ModelConfig:
     aggregation and return of §4.3.2), ``none`` (pool and unpool by index), ``graph_conv`` (one
     unweighted graph convolution), ``pos_kernel`` (inverse-distance weights, Liu et al.) or
     ``learnable`` (one message pass per transition, Fortunato et al.).
-    grid_* (ms_gnn_grid; thesis §4.4.2.3, Table 4.3): grid levels below the mesh, message
-    passes per level (the mesh first), the finest cell size per dimension (empty: twice the
-    mean rest length of the mesh edges of each graph) and its inflation from level to level.
+    grid_* (ms_gnn_grid; thesis §4.4.2.3, Table 4.3): levels (the mesh, then the grids), message
+    passes per level (the mesh first; each level above the bottom passes on the way down and
+    again on the way up), the finest grid's cell size per dimension (empty: twice the mean rest
+    length of the mesh edges of each graph) and its inflation from level to level.
     pool_ratio (graph_unets): fraction of nodes top-k pooling keeps at each level.
     """
 
@@ -299,6 +309,15 @@ def write_run_files(config: Config, dataset_folder: Path) -> None:
             tmp.write_text(json.dumps(json.loads(metadata.read_text())["config"], indent=1))
 
 
+def dataset_folder(run_dir, config: Config) -> tuple[Path, str]:
+    """(folder, name) of a run's dataset: ``dataset.root`` itself for a converted dataset,
+    ``dataset.root/<name>`` for an MPM one."""
+    if config.dataset.kind != "mpm":
+        return Path(config.dataset.root), Path(config.dataset.root).name
+    name = run_dataset_config(run_dir, config)["dataset"]
+    return Path(config.dataset.root) / name, name
+
+
 def run_dataset_config(run_dir, config: Config) -> dict:
     """The generating dataset config of a run: its ``dataset.json``, else ``config.dataset.config``."""
     saved = Path(run_dir) / "dataset.json"
@@ -326,7 +345,14 @@ def prepare_dataset(config: Config, base: Path | None = None, progress: bool = T
     """The dataset folder of ``config``, generated first where trajectories are missing.
 
     base: folder that a relative ``dataset.config`` may also be relative to (the config file's).
+    A converted dataset (``dataset.kind`` deepmind or authors) is never generated: its folder
+    must hold the train and valid trajectories.
     """
+    if config.dataset.kind != "mpm":
+        folder = Path(config.dataset.root)
+        for split in ("train", "valid"):
+            split_files(folder, split, convert_fix(config.dataset.kind, folder, split))
+        return folder
     path = _dataset_config_path(config, base)
     dconfig = load_dataset_config(path)
     root = Path(config.dataset.root)
@@ -342,27 +368,38 @@ def prepare_dataset(config: Config, base: Path | None = None, progress: bool = T
     return folder
 
 
-def split_files(folder: Path, split: str) -> list[Path]:
-    """The trajectory files of ``split`` in a dataset folder, sorted; ConfigError when there are none."""
+def convert_fix(kind: str, folder: Path, split: str) -> str:
+    """What to do about a converted dataset folder that lacks ``split``."""
+    source = "SRC (the folder of meta.json and {train,valid,test}.tfrecord)" if kind == "deepmind" else \
+        "SRC (the folder of train/, valid/, test/ with <index>.h5 files)"
+    return (f"convert it with python -m bsms.datasets convert {kind} SRC {folder} --split {split}, where {source}, "
+            "or point the config at the folder you converted into with dataset.root=FOLDER")
+
+
+def split_files(folder: Path, split: str, fix: str | None = None) -> list[Path]:
+    """The trajectory files of ``split`` in a dataset folder, sorted; ConfigError when there are
+    none (``fix``: what to do then, default: generate them)."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise ConfigError(f"dataset folder {folder} does not exist (moved or deleted?); put the dataset back "
-                          f"there, or regenerate it with python -m datagen DATASET_CONFIG --out {folder.parent}")
+        raise ConfigError(f"dataset folder {folder} does not exist (moved or deleted?); " + (
+            fix or f"put the dataset back there, or regenerate it with python -m datagen DATASET_CONFIG "
+                   f"--out {folder.parent}"))
     files = sorted((folder / split).glob("*.h5"))
     if not files:
-        raise ConfigError(f"dataset folder {folder} has no {split} trajectories (files {folder / split}/*.h5); "
-                          f"generate them (its dataset config must give splits.{split} > 0)")
+        raise ConfigError(f"dataset folder {folder} has no {split} trajectories (files {folder / split}/*.h5); " + (
+            fix or f"generate them (its dataset config must give splits.{split} > 0)"))
     return files
 
 
 # ----------------------------------------------------------------------------- model
-def build_model(config: Config, dim: int) -> LearnedSimulator:
-    """The learned simulator a config describes, for dimension ``dim`` (untrained)."""
+def build_model(config: Config, dim: int, fields: FieldSpec | None = None) -> LearnedSimulator:
+    """The learned simulator a config describes, for dimension ``dim`` and the data's field spec
+    ``fields`` (default: Lagrangian), untrained."""
     return LearnedSimulator(
         config.model.name, dim, n_levels=config.graph.levels, contact=config.graph.contact,
         n_constants=len(config.graph.constants), latent=config.model.latent, n_passes=config.model.passes,
         hidden_layers=config.model.hidden_layers, max_accumulations=config.train.normalizer_steps,
-        core_options=config.model.core_options(dim),
+        core_options=config.model.core_options(dim), fields=fields,
     )
 
 
@@ -375,7 +412,11 @@ def load_model(source, which: str = "best", device="cpu") -> tuple[LearnedSimula
         config = build(Config, {**state["config"], "graph": saved_graph_options(state["config"].get("graph"))})
     except ConfigError as exc:
         raise CheckpointError(f"checkpoint {path} holds a config this bsms cannot read ({exc})") from None
-    model = build_model(config, int(state["dim"]))
+    try:
+        fields = FieldSpec.from_dict(state["fields"], f"checkpoint {path}") if "fields" in state else None
+        model = build_model(config, int(state["dim"]), fields)
+    except ValueError as exc:
+        raise CheckpointError(f"checkpoint {path}: {exc}") from None
     try:
         model.load_state_dict(state["model"])
     except RuntimeError as exc:

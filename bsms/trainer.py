@@ -55,6 +55,8 @@ METRICS_FIELDS = ("step", "loss", "lr", "seconds", "samples_per_s", "valid_rmse"
 # These may change when a run is resumed; anything else must match the run's saved config.
 _OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.workers", "dataset.generate",
                 "evaluate.batch"}
+# Keys added after runs were saved, with the value that keeps what those runs did.
+_ADDED = {"dataset.kind": "mpm", "graph.contact_distance": None}
 
 
 def _flat(data: dict, prefix: str = "") -> dict:
@@ -171,7 +173,7 @@ class Trainer:
             raise ConfigError(f"config key 'train.batch_size' ({config.train.batch_size}) exceeds the "
                               f"{len(self.train_set)} training samples of {self.dataset_folder}")
         _seed_everything(config.train.seed)
-        self.model = build_model(config, self.train_set.dim).to(self.device)
+        self.model = build_model(config, self.train_set.dim, self.train_set.spec).to(self.device)
         if self.world > 1:
             for tensor in [*self.model.parameters(), *self.model.buffers()]:
                 dist.broadcast(tensor.data, src=0)
@@ -242,7 +244,7 @@ class Trainer:
         saved_path = self.run_dir / "config.yaml"
         if not saved_path.is_file():
             return
-        saved, now = _flat(load(saved_path)), _flat(to_dict(self.config))
+        saved, now = {**_ADDED, **_flat(load(saved_path))}, _flat(to_dict(self.config))
         changed = sorted(k for k in set(saved) | set(now) if k not in _OPERATIONAL and saved.get(k) != now.get(k))
         if changed:
             key = changed[0]
@@ -280,7 +282,8 @@ class Trainer:
     # -- checkpoints
     def state(self) -> dict:
         return {
-            "format": FORMAT, "config": to_dict(self.config), "dim": self.train_set.dim, "step": self.step,
+            "format": FORMAT, "config": to_dict(self.config), "dim": self.train_set.dim,
+            "fields": self.train_set.spec.to_dict(), "step": self.step,
             "best_valid": self.best_valid, "seconds": self.seconds, "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(), "rng": _rng_state(),
         }
@@ -369,7 +372,8 @@ class Trainer:
 
     @torch.no_grad()
     def validate(self) -> float:
-        """One-step RMSE (m) of the next position of free nodes over the validation samples."""
+        """One-step RMSE over the validation samples of the free nodes' next position (m; Lagrangian
+        data) or first output field (the data's units, e.g. velocity; Eulerian data)."""
         self.model.eval()
         n = len(self.valid_set)
         picks = np.unique(np.linspace(0, n - 1, min(n, self.config.train.valid_samples)).round().astype(int))
@@ -378,7 +382,11 @@ class Trainer:
         for start in range(0, len(picks), size):
             batch = Batch.from_data_list([self.valid_set[int(i)] for i in picks[start:start + size]]).to(self.device)
             change = self.model.output_normalizer.inverse(self.model(batch, precision=self._precision))
-            error = (change - batch.target) * batch.frame_dt[:, None]
+            error, spec = change - batch.target, self.model.spec
+            if spec.is_lagrangian:
+                error = error * batch.frame_dt[:, None]
+            else:
+                error = error[:, spec.output_columns(spec.outputs[0].name)]
             squared += float(error[batch.loss_mask].square().sum())
             count += int(batch.loss_mask.sum())
         return math.sqrt(squared / max(count, 1))

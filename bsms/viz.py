@@ -163,12 +163,14 @@ def _draw_body(ax, x: np.ndarray, cells: np.ndarray, colour, vmax: float) -> Non
 
 def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarray | None = None,
                 obstacles: tuple[np.ndarray, np.ndarray] | None = None, frame_dt: float = 1.0,
-                fps: int = 10, max_frames: int = 80) -> Path:
+                fps: int = 10, max_frames: int = 80, colour: tuple[np.ndarray, str] | None = None) -> Path:
     """Animated rollout of the body: ground truth (left) next to the prediction coloured by its
     position error (right); without ``truth`` the prediction alone coloured by speed.
 
     cells: (C, d+1) body cells; predicted / truth: (T, N, d) body-node positions; obstacles:
     (nodes, facets) drawn in grey. 3D bodies are drawn as point clouds (x-y projection).
+    colour: (values (T, N), label) to colour the prediction by instead (e.g. a field's error on
+    a fixed mesh).
     """
     plt = _pyplot()
     from matplotlib.animation import FuncAnimation, PillowWriter
@@ -180,7 +182,12 @@ def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarra
     axes = axes[0]
     lo, hi = _limits(predicted[:steps], truth[:steps] if truth is not None else None,
                      obstacles[0] if obstacles is not None else None)
-    colour, label, vmax = _colouring(predicted, truth, steps, frame_dt)
+    if colour is None:
+        colour, label, vmax = _colouring(predicted, truth, steps, frame_dt)
+    else:
+        colour, label = colour
+        finite = colour[np.isfinite(colour)]
+        vmax = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
     fig.colorbar(plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, vmax)), ax=axes[-1], fraction=0.046,
                  label=label)
 

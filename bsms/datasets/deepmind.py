@@ -24,14 +24,14 @@ import numpy as np
 from bsms.datasets.errors import SourceError
 from bsms.datasets.tfrecord import read_records
 
-__all__ = ["FieldSpec", "Meta", "parse_example", "read_split", "SPLITS", "KINDS"]
+__all__ = ["MetaField", "Meta", "parse_example", "read_split", "SPLITS", "KINDS"]
 
 SPLITS = ("train", "valid", "test")
 KINDS = ("static", "dynamic", "dynamic_varlen")
 
 
 @dataclass(frozen=True)
-class FieldSpec:
+class MetaField:
     """One field of meta.json: kind (static, dynamic or dynamic_varlen), shape, dtype."""
 
     name: str
@@ -40,7 +40,7 @@ class FieldSpec:
     dtype: np.dtype
 
 
-def _field(path: Path, name: str, spec) -> FieldSpec:
+def _field(path: Path, name: str, spec) -> MetaField:
     if not isinstance(spec, dict) or not {"type", "shape", "dtype"} <= set(spec):
         raise SourceError(path, "each entry of 'features' needs type, shape and dtype", field=name)
     if spec["type"] not in KINDS:
@@ -54,7 +54,7 @@ def _field(path: Path, name: str, spec) -> FieldSpec:
     except TypeError:
         raise SourceError(path, f"dtype {spec['dtype']!r} is not a numpy dtype name (e.g. float32, int32); fix "
                                 "meta.json", field=name) from None
-    return FieldSpec(name, spec["type"], tuple(shape), dtype)
+    return MetaField(name, spec["type"], tuple(shape), dtype)
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ class Meta:
     """A dataset's checked ``meta.json``."""
 
     path: Path
-    fields: dict[str, FieldSpec]
+    fields: dict[str, MetaField]
     trajectory_length: int
     collision_radius: float | None = None
 

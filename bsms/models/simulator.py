@@ -1,10 +1,13 @@
 """The learned simulator: physics-aware features around a physics-free core network.
 
-Inputs per node: velocity and one-hot node type (+ per-node scene constants). Edge features
-per level: material-space and world-space offsets x_i - x_j (receiver minus sender) and
-their norms on mesh edges; world-space offset and norm on contact edges (thesis Table 4.2,
-Lagrangian cases). Everything is normalised by running statistics stored in the module; the
-core predicts the normalised per-node velocity change over one frame.
+What it reads and writes is the data's :class:`~bsms.fields.FieldSpec` (thesis Table 4.2).
+Lagrangian (the default, every MPM dataset): inputs per node velocity and one-hot node type
+(+ per-node scene constants); edge features per level: material-space and world-space offsets
+x_i - x_j (receiver minus sender) and their norms on mesh edges, world-space offset and norm
+on contact edges; output the per-node velocity change over one frame. Eulerian: inputs the
+node fields of the spec (velocity, density, ...), mesh edges with material-space offsets
+only, outputs the spec's changes and values. Everything is normalised by running statistics
+stored in the module; the core predicts the normalised outputs.
 """
 
 from __future__ import annotations
@@ -12,7 +15,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from bsms.data import N_NODE_TYPES, LevelGraph, NodeType
+from bsms.data import LevelGraph, NodeType
+from bsms.fields import FieldSpec
 from bsms.models.blocks import EdgeSet
 from bsms.models.bsms_gnn import BSMSGNN
 from bsms.models.inputs import Context, Level
@@ -63,41 +67,63 @@ class LearnedSimulator(nn.Module):
         hidden_layers: hidden layers of every MLP.
         max_accumulations: batches after which the normalisers freeze.
         core_options: options of the core beyond these (``transition`` of bsms_gnn, ...).
+        fields: the data's field spec (default: Lagrangian of dimension ``dim``).
     """
 
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
-                 core_options: dict | None = None):
+                 core_options: dict | None = None, fields: FieldSpec | None = None):
         super().__init__()
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
-        self.dim, self.contact = dim, contact
+        spec = FieldSpec.lagrangian(dim) if fields is None else fields
+        if spec.dim != dim or (contact and spec.contact_edge_dim is None):
+            raise ValueError(f"the field spec ({spec.describe()}) does not fit dim={dim}, contact={contact}")
+        self.dim, self.contact, self.spec = dim, contact, spec
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
-        node_in = dim + N_NODE_TYPES + n_constants
-        edge_dims = [2 * dim + 2] + ([dim + 1] if contact else [])
-        self.core = build_core(core, node_in, dim, edge_dims, n_levels=n_levels, latent=latent, n_passes=n_passes,
-                               hidden_layers=hidden_layers, options=dict(core_options or {}))
+        node_in = spec.node_in + spec.n_types + n_constants
+        edge_dims = [spec.mesh_edge_dim] + ([spec.contact_edge_dim] if contact else [])
+        self.core = build_core(core, node_in, spec.node_out, edge_dims, n_levels=n_levels, latent=latent,
+                               n_passes=n_passes, hidden_layers=hidden_layers, options=dict(core_options or {}))
+        if getattr(self.core, "needs_context", False) and spec.material_dim != dim:
+            raise ValueError(f"model {core} reads material and world positions of one dimension; this data has "
+                             f"{dim}D positions on a {spec.material_dim}D mesh: use bsms_gnn or meshgraphnets")
         self.node_normalizer = Normalizer(node_in, max_accumulations)
-        self.output_normalizer = Normalizer(dim, max_accumulations)
+        self.output_normalizer = Normalizer(spec.node_out, max_accumulations)
         self.edge_normalizers = nn.ModuleList(
             nn.ModuleList(Normalizer(size, max_accumulations) for size in edge_dims) for _ in range(self.n_levels)
         )
 
     def node_features(self, graph: LevelGraph) -> Tensor:
         """(N, node_in) raw node inputs."""
-        parts = [graph.velocity, nn.functional.one_hot(graph.node_type, N_NODE_TYPES).to(graph.velocity.dtype)]
+        spec = self.spec
+        for name, needed in (("fields", not spec.is_lagrangian), ("type_code", bool(spec.types))):
+            if needed and name not in graph:
+                raise ValueError(f"the model learned {spec.describe()} and reads '{name}' of its graphs, which this "
+                                 "graph lacks; build scenarios from the data's trajectories (Scenario.from_trajectory)")
+        state = graph.velocity if spec.is_lagrangian else graph.fields
+        codes = graph.type_code if spec.types else graph.node_type
+        parts = [state, nn.functional.one_hot(codes, spec.n_types).to(state.dtype)]
         if "constants" in graph:
             parts.append(graph.constants)
         return torch.cat(parts, dim=-1)
 
     def _level(self, graph: LevelGraph, l: int, accumulate: bool) -> Level:
         nodes, edge_index = graph[f"nodes_{l}"], graph[f"edge_index_{l}"]
-        rest_and_pos = torch.cat([graph.rest_pos, graph.pos], dim=-1).index_select(0, nodes)
-        features = [_offsets(rest_and_pos, edge_index, self.dim)]
+        spec = self.spec
+        if spec.is_lagrangian and spec.material_dim == self.dim:
+            rest_and_pos = torch.cat([graph.rest_pos, graph.pos], dim=-1).index_select(0, nodes)
+            features, world = [_offsets(rest_and_pos, edge_index, self.dim)], rest_and_pos[:, self.dim:]
+        else:  # Eulerian: material offsets only; cloth: material and world offsets of different dimensions
+            parts = [_offsets(graph.rest_pos.index_select(0, nodes), edge_index, spec.material_dim)]
+            world = graph.pos.index_select(0, nodes)
+            if spec.is_lagrangian:
+                parts.append(_offsets(world, edge_index, self.dim))
+            features = [torch.cat(parts, dim=-1)]
         indices = [edge_index]
         if self.contact:
             contact_index = graph[f"contact_index_{l}"]
-            features.append(_offsets(rest_and_pos[:, self.dim:], contact_index, self.dim))
+            features.append(_offsets(world, contact_index, self.dim))
             indices.append(contact_index)
         edge_sets = []
         for normalizer, index, raw in zip(self.edge_normalizers[l], indices, features, strict=True):
@@ -150,7 +176,10 @@ class LearnedSimulator(nn.Module):
 
     @torch.no_grad()
     def velocity_change(self, graph: LevelGraph, precision: str = "f32") -> Tensor:
-        """(N, d) predicted velocity change in physical units (zero on non-free nodes), float32;
-        precision: as in :meth:`forward`."""
+        """(N, node_out) predicted outputs in physical units (zero on non-free nodes), float32:
+        the velocity change of Lagrangian data, the spec's outputs of Eulerian data (the name
+        predates specs); precision: as in :meth:`forward`."""
         change = self.output_normalizer.inverse(self(graph, precision=precision))
         return torch.where((graph.node_type == NodeType.FREE)[:, None], change, torch.zeros_like(change))
+
+    output = velocity_change
