@@ -356,3 +356,34 @@ def sphere(radius: float = 1.0, size: float = 0.1, *, center: Sequence[float] = 
         gmsh.model.occ.addSphere(*map(float, center), float(radius))
         gmsh.model.occ.synchronize()
         return _mesh(gmsh, 3, size, boundary_size)
+
+
+def _occ_tetrahedron(gmsh, corners: np.ndarray) -> int:
+    """An OCC volume bounded by the four triangles of the tetrahedron ``corners`` (4, 3)."""
+    occ = gmsh.model.occ
+    points = [occ.addPoint(*map(float, c)) for c in corners]
+    lines = {}
+    for a in range(4):
+        for b in range(a + 1, 4):
+            lines[a, b] = occ.addLine(points[a], points[b])
+    faces = []
+    for a, b, c in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)):
+        loop = occ.addCurveLoop([lines[a, b], lines[b, c], lines[a, c]])
+        faces.append(occ.addPlaneSurface([loop]))
+    return occ.addVolume([occ.addSurfaceLoop(faces)])
+
+
+def star(radius: float = 1.0, size: float = 0.1, *, center: Sequence[float] = (0.0, 0.0, 0.0)) -> Mesh:
+    """Tetrahedralised stella octangula (two interpenetrating regular tetrahedra, a shape of sharp
+    tips and re-entrant edges) whose eight tips lie at distance ``radius`` from ``center``."""
+    _check_sizes(size, None)
+    if radius <= 0:
+        raise ValueError(f"star radius must be positive, got {radius}")
+    even = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) * radius / math.sqrt(3.0)
+    center = np.asarray(center, float)
+    with _gmsh_session("star") as gmsh:
+        a = _occ_tetrahedron(gmsh, center + even)
+        b = _occ_tetrahedron(gmsh, center - even)
+        gmsh.model.occ.fuse([(3, a)], [(3, b)])
+        gmsh.model.occ.synchronize()
+        return _mesh(gmsh, 3, size, None)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +32,7 @@ from .layer import ExtendedMesh, with_extra_layer
 from .mpm import linalg
 from .mpm.boundary import grid_conditions, mesh_conditions
 from .mpm.diagnostics import diagnostics
+from .mpm.inelastic import initial_fields
 from .mpm.kernels import Grid, MeshTables
 from .mpm.model import KERNELS, REFERENCES, TRANSFERS, Grip, Model, WallPlane
 from .mpm.state import State
@@ -47,6 +48,7 @@ SOLVER_DEFAULTS = {
     "kernel": "umls", "transfer": "flip", "dt": None, "cfl": 0.3, "device": "cpu", "dtype": "float64",
     "grid_spacing": None, "extra_layer": True, "layer_thickness": 1.0, "threads": None,
     "reference": "eulerian", "epsilon": 0.01, "fraction": 0.01, "contact_margin": 1.0, "max_substeps": 100_000,
+    "fbar": False,
 }
 # Rough particle-steps per second of one CPU core (README, mpm_throughput.py), only for the time
 # an absurd configuration would take, stated when it is refused.
@@ -119,8 +121,9 @@ def _check_solver(s: dict) -> None:
                           f"got {margin!r}")
     if not (_positive(s["cfl"], "solver.cfl") <= 1.0):
         raise ConfigError(f"config key 'solver.cfl' must be in (0, 1], got {s['cfl']!r}")
-    if not isinstance(s["extra_layer"], bool):
-        raise ConfigError(f"config key 'solver.extra_layer' must be true or false, got {s['extra_layer']!r}")
+    for key in ("extra_layer", "fbar"):
+        if not isinstance(s[key], bool):
+            raise ConfigError(f"config key 'solver.{key}' must be true or false, got {s[key]!r}")
     try:
         device = torch.device(s["device"])
     except (RuntimeError, TypeError):
@@ -277,10 +280,13 @@ def build_solver_model(scene: Scene, solver: dict) -> tuple[Model, State]:
         conditions=tuple(conditions), gravity=torch.as_tensor(gravity, dtype=dtype, device=device),
         node_positions=nodes, h_cfl=float(h_cfl), reference=solver["reference"], epsilon=float(solver["epsilon"]),
         fraction=float(solver["fraction"]), contact_margin=solver["contact_margin"], grips=grips,
-        damping=float(getattr(scene, "damping", 0.0)), **reference,
+        damping=float(getattr(scene, "damping", 0.0)), fbar=solver["fbar"], **reference,
     )
     state = State.at_rest_shape(scene.x, scene.v, scene.volume, scene.density(), device=device, dtype=dtype)
-    return model, state
+    if scene.initial_F is not None:  # a body that starts deformed (e.g. compressed)
+        F = torch.as_tensor(np.broadcast_to(scene.initial_F, state.F.shape).copy(), dtype=dtype, device=device)
+        state = replace(state, F=F)
+    return model, replace(state, **initial_fields(model, len(scene.x), device=device, dtype=dtype))
 
 
 def build_simulation(config) -> Simulation:
@@ -311,12 +317,15 @@ def _rebuild_counts(sim: Simulation, state: State, steps: int) -> tuple[int, int
 def _frame_record(sim: Simulation, state: State, steps: int) -> dict:
     out = {k: v.detach().cpu().numpy() for k, v in diagnostics(sim.model, state).items()}
     out["kernel_rebuilds"], out["contact_rebuilds"] = (np.array(c) for c in _rebuild_counts(sim, state, steps))
+    if sim.scene.frame_diagnostics is not None:
+        out.update({k: np.asarray(v.detach().cpu().numpy() if torch.is_tensor(v) else v)
+                    for k, v in sim.scene.frame_diagnostics(sim, state).items()})
     m = state.mass
     out["center_of_mass"] = ((m[:, None] * state.x).sum(0) / m.sum()).cpu().numpy()
     ids = torch.as_tensor(list(sim.scene.probes.values()), dtype=torch.int64, device=state.x.device)
     if ids.numel():
         F = state.F[ids]
-        tau = kirchhoff_stress(sim.model, state.F)[ids]
+        tau = kirchhoff_stress(sim.model, state.F, state.out_of_plane)[ids]
         out["probe_stress"] = (tau / linalg.det(F)[:, None, None]).cpu().numpy()
     return out
 

@@ -30,7 +30,12 @@ def elastic_energy(model: Model, state: State) -> torch.Tensor:
     total = state.x.new_zeros(())
     for material, ids in model.materials:
         F, v0 = (state.F, state.volume0) if ids is None else (state.F[ids], state.volume0[ids])
-        total = total + (v0 * material.energy_density(F)).sum()
+        if getattr(material, "plastic", False):  # F is F^e; in 2D with the out-of-plane strain
+            out = state.out_of_plane
+            psi = material.energy_density(F, out if out is None or ids is None else out[ids])
+        else:
+            psi = material.energy_density(F)
+        total = total + (v0 * psi).sum()
     return total
 
 

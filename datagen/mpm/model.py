@@ -43,6 +43,8 @@ class Model:
     by node index there too, right only while no node near a wall moves); pinned: index
     conditions that hold in every mode (clamps). grips: :class:`Grip` particle sets moved as
     prescribed. damping: mass-proportional damping rate (1/s) of the nodal velocities.
+    fbar: the F-bar treatment against volumetric locking (:mod:`~datagen.mpm.inelastic`): each
+    step's volume change is replaced by its average over the particles' nodal patches.
     """
 
     background: MeshTables | Grid
@@ -61,6 +63,7 @@ class Model:
     pinned: tuple = ()
     grips: tuple = ()
     damping: float = 0.0
+    fbar: bool = False
 
     def __post_init__(self):
         if self.reference not in REFERENCES:
@@ -95,6 +98,11 @@ class Model:
     def cell_size(self) -> float:
         """The background's cell size: the B-spline length h of a mesh, the spacing of a grid."""
         return self.background.spacing if isinstance(self.background, Grid) else self.background.h
+
+    @property
+    def plastic(self) -> bool:
+        """Whether a material is plastic (its particles carry F^e and a plastic strain)."""
+        return any(getattr(m, "plastic", False) for m, _ in self.materials)
 
     @property
     def viscous(self) -> bool:

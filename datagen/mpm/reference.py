@@ -39,6 +39,7 @@ from scipy.spatial import cKDTree
 
 from . import linalg
 from .errors import check_finite, lost_particles
+from .inelastic import post_process
 from .kernels import KernelResult
 from .model import Model, compute_kernel
 from .nodal import move_grips, nodal_update
@@ -82,7 +83,7 @@ def reference_step(model: Model, state: State, dt: float) -> State:
         p2g, g2p = SLOT_TRANSFERS[model.transfer]
         grid = nodal_update(model, state, k, p2g(model, state, k), dt)
         new, v_nodes = g2p(model, state, k, grid, dt), grid.v_new
-    new = move_grips(model, state, new, dt)
+    new = post_process(model, state, move_grips(model, state, new, dt), k)  # F-bar, plastic return map
     check_finite(model, state, new, dt)
     speed = float(v_nodes.abs().max()) * math.sqrt(model.dim) if v_nodes.numel() else 0.0  # >= max_i |v_i|
     ref = replace(new.reference, nodes=state.reference.nodes + dt * v_nodes, drift=new.reference.drift + dt * speed)

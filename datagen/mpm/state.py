@@ -55,6 +55,9 @@ class State:
     for the cell search; time; step. reference: the :class:`Reference` of the total/adaptive
     modes (None in eulerian mode or before the first step). velocity_gradient: (P, d, d) the
     last step's grad v in the current configuration, kept only for viscous materials.
+    plastic_strain: (P,) equivalent plastic strain eps_q^p and out_of_plane: (P,) the out-of-plane
+    elastic log strain of plane strain (2D), kept only when a material is plastic (F is then the
+    elastic part F^e; see :mod:`~datagen.mpm.inelastic`).
     """
 
     x: torch.Tensor
@@ -68,6 +71,8 @@ class State:
     step: int = 0
     reference: Reference | None = None
     velocity_gradient: torch.Tensor | None = None
+    plastic_strain: torch.Tensor | None = None
+    out_of_plane: torch.Tensor | None = None
 
     @classmethod
     def at_rest_shape(cls, x, v, volume0, density, *, device="cpu", dtype=torch.float64) -> State:

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from .errors import check_finite, lost_particles
+from .inelastic import post_process
 from .kernels import KernelResult
 from .model import Model, compute_kernel
 from .nodal import move_grips, nodal_update
@@ -42,6 +43,7 @@ def eulerian_step(model: Model, state: State, dt: float, kernel: KernelResult | 
     sums = p2g(model, state, k)  # lines 2-3: [m_i, p_i, f_int_i]
     grid = nodal_update(model, state, k, sums, dt)  # lines 4-6: gravity, v~_i, boundary conditions
     new = move_grips(model, state, g2p(model, state, k, grid, dt), dt)  # lines 7-9: v_p, x_p, F_p
+    new = post_process(model, state, new, k)  # F-bar, plastic return map
     check_finite(model, state, new, dt)
     cell = k.cell if k.cell is not None else state.cell
     return replace(new, cell=cell, time=state.time + dt, step=state.step + 1)

@@ -12,20 +12,27 @@ from .state import State
 __all__ = ["kirchhoff_stress", "particle_stress", "force_stress"]
 
 
-def kirchhoff_stress(model: Model, F: torch.Tensor) -> torch.Tensor:
-    """(P, d, d) Kirchhoff stress tau = J sigma of every particle."""
+def kirchhoff_stress(model: Model, F: torch.Tensor, out_of_plane: torch.Tensor | None = None) -> torch.Tensor:
+    """(P, d, d) Kirchhoff stress tau = J sigma of every particle. out_of_plane: (P,) the
+    out-of-plane elastic log strain plastic materials take in 2D (State.out_of_plane)."""
     if len(model.materials) == 1 and model.materials[0][1] is None:
-        return model.materials[0][0].kirchhoff(F)
+        return _tau(model.materials[0][0], F, out_of_plane)
     tau = torch.empty_like(F)
     for material, ids in model.materials:
-        tau[ids] = material.kirchhoff(F[ids])
+        tau[ids] = _tau(material, F[ids], None if out_of_plane is None else out_of_plane[ids])
     return tau
+
+
+def _tau(material, F: torch.Tensor, out_of_plane: torch.Tensor | None) -> torch.Tensor:
+    if getattr(material, "plastic", False):
+        return material.kirchhoff(F, out_of_plane)
+    return material.kirchhoff(F)
 
 
 def particle_stress(model: Model, state: State) -> torch.Tensor:
     """(P, d, d) the Kirchhoff stress tau of every particle plus the viscous Kirchhoff stress
     eta J (L + L^T) of viscous materials (L the last step's velocity gradient)."""
-    tau = kirchhoff_stress(model, state.F)
+    tau = kirchhoff_stress(model, state.F, state.out_of_plane)
     if state.velocity_gradient is not None:
         L = state.velocity_gradient
         J = linalg.det(state.F)

@@ -10,9 +10,11 @@ from . import (
     colliding_disks,
     disks,
     droplet,
+    expansion,
     glyphs,
     rotating_plate,
     rotating_square,
+    slope,
     stretched_bar,
     vibrating_bar,
     wavy_channel,
@@ -24,7 +26,7 @@ __all__ = ["SCENES", "get_scene", "ConfigError", "Scene"]
 SCENES = {
     module.NAME: module
     for module in (vibrating_bar, colliding_disks, cantilever, rotating_square, disks, wavy_channel, glyphs,
-                   rotating_plate, stretched_bar, droplet, balls, bodies)
+                   rotating_plate, stretched_bar, droplet, balls, bodies, slope, expansion)
 }
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -13,7 +14,7 @@ from ..mpm.boundary import Clamp, Wall
 from ..mpm.materials import MATERIALS, Material
 
 __all__ = [
-    "Scene", "check_params", "make_material", "lattice", "lattice_mesh",
+    "Scene", "check_params", "make_material", "lattice", "lattice_mesh", "lattice_cells",
     "chain_mesh", "line_mesh", "vertex_volumes", "nearest", "contained_bodies", "merge_bodies", "outline",
     "box_bounds", "box_domain",
 ]
@@ -32,6 +33,9 @@ class Scene:
     node_type: (N,) datagen.trajectory.NodeType codes of the body vertices (None: all free);
     body_id: (N,) body of each vertex (None: one body); obstacle_nodes (M, d) and
     obstacle_facets (F, d): wall/container geometry a model can see (None: none).
+    initial_F: (P, d, d) or (d, d) deformation gradient at t = 0 (None: the identity).
+    frame_diagnostics: (simulation, state) -> name -> array, extra per-frame diagnostics
+    (e.g. a slope's run-out); the simulation is a datagen.simulation.Simulation.
     """
 
     domain: Mesh
@@ -50,6 +54,8 @@ class Scene:
     body_id: np.ndarray | None = None
     obstacle_nodes: np.ndarray | None = None
     obstacle_facets: np.ndarray | None = None
+    initial_F: np.ndarray | None = None
+    frame_diagnostics: Callable | None = None
 
     @property
     def dim(self) -> int:
@@ -113,16 +119,31 @@ def lattice(lower, upper, spacing: float) -> tuple[np.ndarray, tuple[int, ...], 
 
 
 def lattice_mesh(points: np.ndarray, counts: tuple[int, ...]) -> Mesh:
-    """Structured simplices over lattice points in C order: a chain in 1D, two triangles per quad in 2D."""
+    """Structured simplices over lattice points in C order: a chain in 1D, two triangles per quad in
+    2D, six tetrahedra around the main diagonal of every cube in 3D."""
     if len(counts) == 1:
         return chain_mesh(points)
-    if len(counts) != 2:
-        raise ValueError("lattice_mesh supports 1D and 2D lattices")
-    nx, ny = counts
-    idx = np.arange(nx * ny).reshape(nx, ny)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
-    cells = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
-    return Mesh.from_arrays(points, cells, orient=True)
+    return Mesh.from_arrays(points, lattice_cells(counts), orient=True)
+
+
+def lattice_cells(counts: tuple[int, ...]) -> np.ndarray:
+    """(C, d+1) the simplices of :func:`lattice_mesh` over a 2D or 3D lattice of ``counts`` points."""
+    if len(counts) not in (2, 3):
+        raise ValueError("lattice_mesh supports 1D, 2D and 3D lattices")
+    idx = np.arange(int(np.prod(counts))).reshape(counts)
+    if len(counts) == 2:
+        a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+        return np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    def corner(o):  # noqa: E306 - the lattice index of corner offset o of every cube
+        return idx[o[0]:counts[0] - 1 + o[0], o[1]:counts[1] - 1 + o[1], o[2]:counts[2] - 1 + o[2]].ravel()
+    cells = []
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):  # Kuhn's six tetrahedra
+        path, o = [corner((0, 0, 0))], [0, 0, 0]
+        for axis in perm:
+            o[axis] = 1
+            path.append(corner(tuple(o)))
+        cells.append(np.stack(path, 1))
+    return np.concatenate(cells)
 
 
 def chain_mesh(points: np.ndarray) -> Mesh:
