@@ -335,8 +335,8 @@ def main(argv=None) -> None:
     report = {"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
               "machine": platform.processor() or platform.machine(), "cells": cells}
     args.out.write_text(json.dumps(report, indent=1))
-    parts = [f"{label}/BSMS train {_fmt(ratio(at5k, label, 'train_s'))} mem {_fmt(ratio(at5k, label, 'train_peak_bytes'))}"
-             for label in ("MGN", "GRID", "GUNETS")]
+    parts = [f"{label}/BSMS train {_fmt(ratio(at5k, label, 'train_s'))} "
+             f"mem {_fmt(ratio(at5k, label, 'train_peak_bytes'))}" for label in ("MGN", "GRID", "GUNETS")]
     print(f"model costs @5k: {', '.join(parts)}")
 
 
