@@ -14,7 +14,9 @@ two hidden layers of ``--latent`` (128) units, as the thesis.
 
 Every (model, size, batch) runs in fresh processes, one for time and one for memory, and the
 models are interleaved (A B C ... A B C ...) over ``--rounds`` so that load drift on a shared
-machine hits all alike; a time is the median over rounds of each process' median step.
+machine hits all alike; a time is the median over rounds of each process' median step
+(``--clock cpu``: CPU seconds of the process instead of wall seconds, steadier where other
+processes share the cores).
 Memory is measured as in ``benchmarks/train_step.py`` (CPU: the resident-set high-water mark
 over the training steps, freed blocks returned to the OS; CUDA: max_memory_allocated). A
 process that runs out of the ``--memory-cap`` (address space on CPU) reports ``-`` as the
@@ -27,7 +29,7 @@ writes everything to ``--out`` (JSON), and ends with exactly
 
 (the 5k graphs at the smallest batch size).
 
-    python benchmarks/model_costs.py --quick          # 1k and 5k nodes, batch 2: minutes
+    python benchmarks/model_costs.py --quick          # 5k nodes, batch 2: minutes
     python benchmarks/model_costs.py                  # 1k-45k nodes, batches 2-16: hours
 """
 
@@ -130,7 +132,7 @@ def _cap_memory(cap_bytes: int) -> None:
     resource.setrlimit(resource.RLIMIT_AS, (vm_size + cap_bytes, resource.RLIM_INFINITY))
 
 
-def _measure(model, batches, optimizer, device, warmup: int, phase: str) -> dict:
+def _measure(model, batches, optimizer, device, warmup: int, phase: str, clock_name: str) -> dict:
     import torch
 
     def sync():
@@ -146,12 +148,14 @@ def _measure(model, batches, optimizer, device, warmup: int, phase: str) -> dict
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         optimizer.step()
 
+    clock = time.process_time if clock_name == "cpu" else time.perf_counter
+
     def timed(run) -> float:
         sync()
-        start = time.perf_counter()
+        start = clock()
         run()
         sync()
-        return time.perf_counter() - start
+        return clock() - start
 
     meter = MemoryMeter(device)
     meter.start()
@@ -200,7 +204,7 @@ def worker(spec: dict) -> dict:
     if spec["device"] == "cpu" and spec["memory_cap"] > 0:
         _cap_memory(int(spec["memory_cap"] * 2**30))
     try:
-        result = _measure(model, batches, optimizer, device, spec["warmup"], spec["phase"])
+        result = _measure(model, batches, optimizer, device, spec["warmup"], spec["phase"], spec["clock"])
     except (RuntimeError, MemoryError) as exc:
         if "memory" not in str(exc).lower() and not isinstance(exc, MemoryError):
             raise
@@ -265,7 +269,7 @@ def print_cell(size: int, batch: int, cell: dict) -> None:
 
 def parse(argv):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="1k and 5k nodes, batch 2, 1 round (minutes)")
+    parser.add_argument("--quick", action="store_true", help="5k nodes, batch 2, 1 round (minutes)")
     parser.add_argument("--sizes", type=int, nargs="+", help=f"nodes per graph (default {list(SIZES)})")
     parser.add_argument("--batches", type=int, nargs="+", help="batch sizes (default 2 4 8 16; CUDA up to 64)")
     parser.add_argument("--models", nargs="+", help="labels to run (default all: "
@@ -276,6 +280,9 @@ def parse(argv):
     parser.add_argument("--latent", type=int, default=128, help="latent and hidden width (default 128)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads per process (default 2)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
+    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                        help="wall seconds, or the process' CPU seconds (all its threads: steadier on a busy "
+                             "machine, where other processes take turns on the cores; CPU only)")
     parser.add_argument("--memory-cap", type=float, default=12.0,
                         help="GiB a CPU process may map beyond its start before it counts as out of memory "
                              "(default 12; 0: no cap)")
@@ -284,7 +291,7 @@ def parse(argv):
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     cuda = args.device.startswith("cuda")
-    args.sizes = args.sizes or ([1000, 5000] if args.quick else list(SIZES))
+    args.sizes = args.sizes or ([5000] if args.quick else list(SIZES))
     args.batches = args.batches or ([2] if args.quick else list(CUDA_BATCHES if cuda else BATCHES))
     args.steps = args.steps or (2 if args.quick else 5)
     args.warmup = (1 if args.quick else 2) if args.warmup is None else args.warmup
@@ -318,9 +325,12 @@ def main(argv=None) -> None:
         for variant in range(max(args.batches)):
             cached_mesh(args.data, size, variant)
     print(f"model costs: sizes {args.sizes}, batches {args.batches}, {args.warmup} warm-up + {args.steps} timed "
-          f"steps, {args.rounds} round(s), {args.threads} threads, {args.device}, latent {args.latent}", flush=True)
+          f"steps, {args.rounds} round(s), {args.threads} threads, {args.device}, latent {args.latent}, "
+          f"{args.clock} clock", flush=True)
+    if args.clock == "cpu" and args.device != "cpu":
+        raise SystemExit("--clock cpu times CPU processes; use the wall clock with --device cuda")
     spec = {"data": str(args.data), "steps": args.steps, "warmup": args.warmup, "threads": args.threads,
-            "device": args.device, "latent": args.latent, "memory_cap": args.memory_cap}
+            "device": args.device, "latent": args.latent, "memory_cap": args.memory_cap, "clock": args.clock}
     cells = {}
     for size in args.sizes:
         for batch in args.batches:
