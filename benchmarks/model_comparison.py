@@ -13,8 +13,10 @@ process with the same threads, and this script writes ``<runs>/<prefix>_comparis
 * train peak RSS: the training process' resident-set high-water mark (``wait4``), data
   loading included, as the thesis' "training RAM";
 * infer ms/step and the speed-up over the solver at the data's settings, RMSE-1, RMSE-50 and
-  RMSE over all steps (m, free body nodes), unstable rollouts and inference peak memory: from
-  the evaluation's ``metrics.json``.
+  RMSE over all steps (m, free body nodes; and relative to the body size), unstable rollouts
+  and the first unstable step: from the evaluation's ``metrics.json``. (Its inference peak
+  memory is the evaluating process' high-water mark, the same for every model compared in
+  one run, so it is not shown.)
 
 Ends with exactly ``model comparison: RMSE all BSMS a, MGN b, GRID c, GUNETS d`` (m).
 
@@ -75,7 +77,7 @@ def train_ms_per_step(run: Path) -> float:
 def table(runs: Path, names: dict[str, str], metrics: dict) -> list[str]:
     rows = {row["label"]: row for row in metrics["rows"]}
     lines = ["| model | train ms/step | train peak RSS (MB) | infer ms/step, speed-up | RMSE-1 (m) | RMSE-50 (m) "
-             "| RMSE all (m) | unstable | infer peak (MB) |", "|---|---|---|---|---|---|---|---|---|"]
+             "| RMSE all (m) | RMSE all / body size | unstable (first step) |", "|---|---|---|---|---|---|---|---|---|"]
     for label, name in names.items():
         row, run = rows[name], runs / name
         rss = json.loads((run / "train_peak_rss.json").read_text())["bytes"] / 2**20 \
@@ -83,7 +85,8 @@ def table(runs: Path, names: dict[str, str], metrics: dict) -> list[str]:
         infer = 1e3 * row["seconds_per_step"]
         lines.append(f"| {label} | {train_ms_per_step(run):.1f} | {rss:.0f} | {infer:.1f}, {row['speedup']:.2f}x "
                      f"| {row['rmse_1']:.3g} | {row['rmse_50']:.3g} | {row['rmse_all']:.3g} "
-                     f"| {row['unstable']} of {row['trajectories']} | {row['peak_memory_mb'] or '-'} |")
+                     f"| {row['rel_all']:.3g} | {row['unstable']} of {row['trajectories']} "
+                     f"({row['first_unstable_step'] if row['first_unstable_step'] is not None else '-'}) |")
     return lines
 
 
