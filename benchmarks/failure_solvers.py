@@ -128,17 +128,19 @@ def fracture_by_mode(scenes: tuple[str, ...] = ("stretched_bar", "rotating_plate
 
 # ----------------------------------------------------------------------------- 4. learned rollouts
 def comparison_rows(runs: Path = Path("runs")) -> dict[str, dict]:
-    """name -> the learned row (rmse_all, first_unstable_step, unstable, trajectories) of each
-    comparison run's evaluation/metrics.json that exists (cmp_*)."""
+    """run name -> its learned row (rmse_all, first_unstable_step, unstable, trajectories) in
+    the comparison runs' evaluation/metrics.json files (cmp_*). One evaluation with
+    ``--compare`` (benchmarks/model_comparison.py) writes every compared run's row into the
+    first run's file; rows are keyed by their label, the run name."""
     out = {}
     for path in sorted(runs.glob("cmp_*/evaluation/metrics.json")):
         try:
             rows = json.loads(path.read_text())["rows"]
         except (OSError, ValueError, KeyError):
             continue
-        learned = [r for r in rows if r.get("kind") == "learned"]
-        if learned:
-            out[path.parts[-3]] = learned[0]
+        for row in rows:
+            if row.get("kind") == "learned" and str(row.get("label", "")).startswith("cmp_"):
+                out.setdefault(row["label"], row)
     return out
 
 
