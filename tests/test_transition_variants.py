@@ -260,18 +260,16 @@ def old_forward(core: BSMSGNN, x, levels):
 
 
 def test_bistride_default_is_unchanged(meshes, monkeypatch):
-    default, explicit = model("bistride"), LearnedSimulator("bsms_gnn", 2, n_levels=N_LEVELS, latent=32)
+    default = model("bistride")
     assert not default.core.needs_context
     assert not any("transitions" in k for k in default.state_dict()), "no state beyond the blocks"
     monkeypatch.setattr(LearnedSimulator, "_context", lambda *a: pytest.fail("bistride must not build a Context"))
     batch = Batch.from_data_list([g for _, g in meshes])
     default.loss(batch, accumulate=True)
-    explicit.load_state_dict(default.state_dict())
     with torch.no_grad():
         out = default(batch)
         levels = [default._level(batch, l, False) for l in range(N_LEVELS)]
         assert torch.equal(out, old_forward(default.core, default.node_normalizer(default.node_features(batch)), levels))
-        assert torch.equal(explicit(batch), out)
 
 
 @pytest.mark.parametrize("transition", TRANSITIONS)

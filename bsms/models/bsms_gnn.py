@@ -19,6 +19,22 @@ from bsms.models.transition_variants import TRANSITIONS, apply_transition, make_
 __all__ = ["BSMSGNN", "apply_transition"]
 
 
+def add_unet_modules(module: nn.Module, node_in: int, node_out: int, edge_feature_dims: list[int], n_levels: int,
+                     latent: int, hidden: int, hidden_layers: int) -> None:
+    """The modules of a U-shaped core with one message pass per level (BSMS-GNN, GraphUNets):
+    ``encoder``, ``down_blocks`` and ``up_blocks`` (one per level above the bottom),
+    ``bottom_block`` and ``decoder``, registered on ``module`` in this order (their state_dict keys)."""
+
+    def block() -> MessagePassingBlock:
+        return MessagePassingBlock(latent, list(edge_feature_dims), hidden, hidden_layers)
+
+    module.encoder = mlp(node_in, latent, hidden, hidden_layers)
+    module.down_blocks = nn.ModuleList(block() for _ in range(n_levels - 1))
+    module.bottom_block = block()
+    module.up_blocks = nn.ModuleList(block() for _ in range(n_levels - 1))
+    module.decoder = mlp(latent, node_out, hidden, hidden_layers, layer_norm=False)
+
+
 class BSMSGNN(nn.Module):
     """Bi-stride multi-scale graph network.
 
@@ -43,16 +59,7 @@ class BSMSGNN(nn.Module):
         if transition not in TRANSITIONS:
             raise ValueError(f"unknown transition {transition!r}; choose one of {', '.join(TRANSITIONS)}")
         self.n_levels = n_levels
-
-        def block() -> MessagePassingBlock:
-            return MessagePassingBlock(latent, list(edge_feature_dims), hidden, hidden_layers)
-
-        self.encoder = mlp(node_in, latent, hidden, hidden_layers)
-        self.down_blocks = nn.ModuleList(block() for _ in range(n_levels - 1))
-        self.bottom_block = block()
-        self.up_blocks = nn.ModuleList(block() for _ in range(n_levels - 1))
-        self.decoder = mlp(latent, node_out, hidden, hidden_layers, layer_norm=False)
-        self.transition = transition
+        add_unet_modules(self, node_in, node_out, edge_feature_dims, n_levels, latent, hidden, hidden_layers)
         self.transitions = make_transitions(transition, n_levels, latent, hidden, hidden_layers)
         self.needs_context = self.transitions.needs_context
 

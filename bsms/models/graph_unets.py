@@ -28,9 +28,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from bsms.models.blocks import EdgeSet, MessagePassingBlock
+from bsms.models.blocks import EdgeSet
+from bsms.models.bsms_gnn import add_unet_modules
 from bsms.models.inputs import Context, Level
-from bsms.models.mlp import mlp
 from bsms.normalize import Normalizer
 
 __all__ = ["GraphUNets", "top_k_per_graph", "reach", "coarse_pairs", "coarse_edges"]
@@ -142,15 +142,7 @@ class GraphUNets(nn.Module):
         if not 0 < ratio < 1:
             raise ValueError(f"ratio must lie strictly between 0 and 1, got {ratio}")
         self.n_levels, self.ratio, self.edge_feature_dims = n_levels, ratio, list(edge_feature_dims)
-
-        def block() -> MessagePassingBlock:
-            return MessagePassingBlock(latent, list(edge_feature_dims), hidden, hidden_layers)
-
-        self.encoder = mlp(node_in, latent, hidden, hidden_layers)
-        self.down_blocks = nn.ModuleList(block() for _ in range(n_levels - 1))
-        self.bottom_block = block()
-        self.up_blocks = nn.ModuleList(block() for _ in range(n_levels - 1))
-        self.decoder = mlp(latent, node_out, hidden, hidden_layers, layer_norm=False)
+        add_unet_modules(self, node_in, node_out, edge_feature_dims, n_levels, latent, hidden, hidden_layers)
         # one projection p per gPool, rows of unit expected norm
         self.projections = nn.Parameter(torch.randn(n_levels - 1, latent) / math.sqrt(latent))
         self.edge_normalizers = nn.ModuleList(
