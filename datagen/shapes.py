@@ -43,15 +43,22 @@ _OPTIONS = {  # option -> value used for every mesh
 @contextmanager
 def _keep_signal_handlers():
     """gmsh's initialize/finalize reset the process's SIGTERM action behind Python's back (a
-    trainer's save-on-SIGTERM would be lost): put Python's handlers back afterwards."""
+    trainer's save-on-SIGTERM would be lost): put Python's handlers back afterwards. The two
+    signals are blocked meanwhile, so one that arrives in between waits for Python's handler
+    instead of meeting gmsh's."""
     main = threading.current_thread() is threading.main_thread()
-    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)} if main else {}
+    signals = {signal.SIGINT, signal.SIGTERM}
+    saved = {sig: signal.getsignal(sig) for sig in signals} if main else {}
+    blocking = main and hasattr(signal, "pthread_sigmask")
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, signals) if blocking else None
     try:
         yield
     finally:
         for sig, handler in saved.items():
             if handler is not None:
                 signal.signal(sig, handler)
+        if blocking:
+            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 @contextmanager
