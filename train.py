@@ -71,7 +71,7 @@ def main(argv=None) -> int:
         output_folder(config.run_dir, "the run folder (config keys 'runs' and 'name')")
         trainer = Trainer(config, resume=args.resume, base=Path(args.config).parent)
         if trainer.rank == 0:
-            print(f"run folder {trainer.run_dir}; {len(trainer.train_set)} training samples from "
+            print(f"run folder {trainer.run_dir}; {len(trainer.samples)} training samples from "
                   f"{trainer.dataset_folder}; model {config.model.name}", flush=True)
         summary = trainer.fit()
     except (ConfigError, CheckpointError, DatasetError) as exc:

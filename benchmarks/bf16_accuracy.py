@@ -48,7 +48,7 @@ def rollout_errors(model, config, trajectories, precision: str) -> dict:
     from bsms.solver_runs import free_nodes
 
     scenarios = [Scenario.from_trajectory(t, config.graph) for t in trajectories]
-    known = [s.full(t.positions) for s, t in zip(scenarios, trajectories, strict=True)]
+    known = [s.positions(t.positions, t.obstacle_positions) for s, t in zip(scenarios, trajectories, strict=True)]
     initial = [s.full(t.velocities[:1], 0.0)[0] for s, t in zip(scenarios, trajectories, strict=True)]
     steps = [len(k) - 1 for k in known]
     results = rollouts(model, scenarios, [k[0] for k in known], initial, steps, known, precision=precision)

@@ -166,7 +166,8 @@ def seeding_sensitivity(run: Path, trajectories: int, steps: int | None) -> dict
         scenarios = [Scenario.from_trajectory(t, options, spec=model.spec) for t in data]
         truths = [world_positions(model.spec, t) for t in data]
         frames = [len(w) - 1 if steps is None else min(steps, len(w) - 1) for w in truths]
-        known = [s.full(w[: n + 1]) for s, w, n in zip(scenarios, truths, frames, strict=True)]
+        known = [s.positions(w[: n + 1], None if t.obstacle_positions is None else t.obstacle_positions[: n + 1])
+                 for s, w, n, t in zip(scenarios, truths, frames, data, strict=True)]
         initial = [s.full(initial_velocity(model.spec, t, w)[None], 0.0)[0]
                    for s, t, w in zip(scenarios, data, truths, strict=True)]
         results = rollouts(model, scenarios, [k[0] for k in known], initial, frames, known)

@@ -194,7 +194,7 @@ def case(frames: int, steps: int, levels: int, repeats: int) -> dict:
 
     trajectory, solver_seconds = solver_frames(frames)
     scenario = Scenario.from_trajectory(trajectory, GraphOptions(levels=levels))
-    x0 = scenario.full(trajectory.positions)[0]
+    x0 = scenario.positions(trajectory.positions, trajectory.obstacle_positions)[0]
     v0 = scenario.full(trajectory.velocities[:1], 0.0)[0]
     graph = scenario.graph(x0, v0)
     model = untrained("bsms_gnn", x0.shape[1], 128, levels, graph)

@@ -22,7 +22,7 @@ from bsms.config import ConfigError
 from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, type_codes, world_positions
 from bsms.graph import bistride_levels
 from bsms.graph.frames import SubHierarchy
-from bsms.graph.obstacles import ObstacleReach, facet_edges, subdivide_facets
+from bsms.graph.obstacles import ObstacleReach, Subdivision, facet_edges, subdivide_obstacles
 from bsms.level_graph import FrameArrays, LevelGraph, level_graph
 from datagen.dataset import DatasetError, load
 from datagen.trajectory import NodeType
@@ -126,28 +126,35 @@ def scene_constant(params: dict, name: str, source: str = "the trajectory") -> f
     return float(value)
 
 
-def frame_velocities(positions: np.ndarray, initial_velocity: np.ndarray, frame_dt: float) -> np.ndarray:
+def frame_velocities(positions: np.ndarray, initial_velocity: np.ndarray, frame_dt: float,
+                     kinematic: np.ndarray | None = None) -> np.ndarray:
     """(T, N, d) input velocities: the initial condition at frame 0, then (x_t - x_{t-1}) / dt.
 
     Finite differences make the learned update exact to integrate: x_{t+1} = x_t + dt (v_t + dv).
+    kinematic: (N,) bool, nodes whose motion is prescribed (clamped, obstacle): their velocity
+    at every frame but the last is that of the coming step, (x_{t+1} - x_t) / dt, so that the
+    model knows where they go next (an indenter reversing included); for nodes that stay put
+    it is 0 either way.
     """
     velocities = np.empty_like(positions)
     velocities[0] = initial_velocity
     velocities[1:] = np.diff(positions, axis=0) / frame_dt
+    if kinematic is not None and kinematic.any():
+        velocities[:-1, kinematic] = velocities[1:, kinematic]
     return velocities
 
 
 def _with_obstacles(rest, edges, node_type, body_id, obstacle_nodes, obstacle_facets, spacing: float):
-    """Body arrays extended by the (subdivided) obstacle nodes and their facet edges."""
+    """Body arrays extended by the (subdivided) obstacle nodes and their facet edges, and the
+    :class:`Subdivision` that places the obstacle nodes."""
     n_body, dim = rest.shape
     obstacle_nodes = np.asarray(obstacle_nodes, np.float64).reshape(-1, dim)
     facets = np.asarray(obstacle_facets, np.int64).reshape(len(obstacle_facets), -1)
-    if spacing > 0:
-        obstacle_nodes, facets = subdivide_facets(obstacle_nodes, facets, spacing)
-    m = len(obstacle_nodes)
-    return (np.concatenate([rest, obstacle_nodes]), np.concatenate([edges, facet_edges(facets) + n_body]),
+    geometry = subdivide_obstacles(obstacle_nodes, facets, spacing)
+    m = len(geometry.nodes)
+    return (np.concatenate([rest, geometry.nodes]), np.concatenate([edges, facet_edges(geometry.facets) + n_body]),
             np.concatenate([node_type, np.full(m, NodeType.OBSTACLE, np.int64)]),
-            np.concatenate([body_id, np.full(m, body_id.max() + 1, np.int64)]))
+            np.concatenate([body_id, np.full(m, body_id.max() + 1, np.int64)]), geometry)
 
 
 @dataclass
@@ -161,7 +168,9 @@ class Scenario:
     frame_dt: time between frames, contact_radius: absolute contact distance; levels: the
     hierarchy prepared for frames that keep some obstacle nodes (:class:`SubHierarchy`); reach:
     which obstacle nodes a frame keeps (:class:`ObstacleReach`); type_codes: (N,) source node
-    type codes fed one-hot instead of the roles (:mod:`bsms.fields`), or None. A frame's graph (:meth:`graph`)
+    type codes fed one-hot instead of the roles (:mod:`bsms.fields`), or None; obstacle_geometry:
+    the subdivided obstacle geometry and its map from the stored obstacle nodes (None: no obstacle
+    nodes), through which moving obstacles place theirs (:meth:`positions`). A frame's graph (:meth:`graph`)
     holds the body nodes and the obstacle nodes within reach of them, so its size changes from
     frame to frame.
     """
@@ -180,6 +189,7 @@ class Scenario:
     levels: SubHierarchy = field(repr=False)
     reach: ObstacleReach = field(repr=False)
     type_codes: np.ndarray | None = None
+    obstacle_geometry: Subdivision | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, mesh, options: GraphOptions, *, frame_dt: float, node_type=None, body_id=None,
@@ -191,11 +201,13 @@ class Scenario:
         body_id = np.zeros(n_body, np.int64) if body_id is None else np.asarray(body_id, np.int64)
         rest, edges = mesh.nodes, mesh.edges
         edge_length = float(np.median(mesh.edge_lengths))
+        geometry = None
         if options.obstacles and obstacle_nodes is not None and len(obstacle_nodes) > 0:
             if type_codes is not None:
                 raise ValueError(f"{source}: node type codes of a source dataset and obstacle geometry do not mix")
-            rest, edges, node_type, body_id = _with_obstacles(rest, edges, node_type, body_id, obstacle_nodes,
-                                                              obstacle_facets, options.obstacle_spacing * edge_length)
+            spacing = options.obstacle_spacing * edge_length
+            rest, edges, node_type, body_id, geometry = _with_obstacles(rest, edges, node_type, body_id, obstacle_nodes,
+                                                                        obstacle_facets, spacing)
         hierarchy = bistride_levels(edges, rest, levels=options.levels, seeding=options.seeding,
                                     self_loops=options.self_loops, cache_dir=cache_dir)
         constants = np.array([scene_constant(params or {}, name, source) for name in options.constants])
@@ -207,7 +219,7 @@ class Scenario:
             hierarchy=hierarchy, constants=constants, frame_dt=float(frame_dt), contact_radius=radius,
             options=options, levels=SubHierarchy(hierarchy, n_body),
             reach=ObstacleReach(n_body, body_id, radius, reach, options.self_contact, edges),
-            type_codes=None if type_codes is None else np.asarray(type_codes, np.int64),
+            type_codes=None if type_codes is None else np.asarray(type_codes, np.int64), obstacle_geometry=geometry,
         )
 
     @classmethod
@@ -243,6 +255,20 @@ class Scenario:
             obstacle_value = self.rest_pos[self.n_body:]
         pad = np.broadcast_to(obstacle_value, body_values.shape[:-2] + (extra, body_values.shape[-1]))
         return np.concatenate([body_values, pad], axis=-2)
+
+    def positions(self, body_positions: np.ndarray, obstacle_positions: np.ndarray | None = None) -> np.ndarray:
+        """(..., N, d) positions of every scenario node: ``body_positions`` (..., N_body, d) of the
+        body nodes, and the obstacle nodes placed by ``obstacle_positions`` (..., M, d) of the
+        stored obstacle nodes (a trajectory's ``obstacle_positions``) through the subdivision
+        map; None: static obstacles, at rest (as :meth:`full`)."""
+        if obstacle_positions is None or self.obstacle_geometry is None:
+            return self.full(body_positions)
+        body_positions = np.asarray(body_positions)
+        moved = self.obstacle_geometry.moved(obstacle_positions)
+        if moved.shape[:-2] != body_positions.shape[:-2]:
+            raise ValueError(f"obstacle positions of shape {np.shape(obstacle_positions)} do not match body positions "
+                             f"of shape {body_positions.shape}: give both for the same frames")
+        return np.concatenate([body_positions, moved], axis=-2)
 
     def frame(self, pos: np.ndarray, velocity: np.ndarray, target: np.ndarray | None = None,
               fields: np.ndarray | None = None) -> FrameArrays:
@@ -330,8 +356,10 @@ class FrameDataset(torch.utils.data.Dataset):
     """Every (trajectory, frame t) of some trajectory files as one-step samples t -> t+1.
 
     Scenarios (hierarchies) are built once per file (``cache_dir`` keeps hierarchies across
-    runs); states are held in memory in float64: Lagrangian positions and velocities (all
-    scenario nodes), or Eulerian states (:mod:`bsms.fields`). ``spec``: the field spec of the
+    runs); states are held in memory in float64: Lagrangian positions (all scenario nodes,
+    moving obstacles placed per frame, :meth:`Scenario.positions`) and input velocities
+    (:func:`frame_velocities`; kinematic nodes: the velocity of the coming step), or Eulerian
+    states (:mod:`bsms.fields`). ``spec``: the field spec of the
     files (they must share one). Items are addressed by an integer, or by ``(index,
     noise_seed)`` to add the training noise of ``noise`` drawn from that seed, so the noise of
     a sample does not depend on which process or batch draws it.
@@ -359,10 +387,10 @@ class FrameDataset(torch.utils.data.Dataset):
                 self.states.append(eulerian_state(spec, trajectory, source))
                 continue
             world = world_positions(spec, trajectory, source)
-            positions = scenario.full(world)
+            positions = scenario.positions(world, trajectory.obstacle_positions)
             initial = scenario.full(initial_velocity(spec, trajectory, world)[None], 0.0)[0]
             self.positions.append(positions)
-            self.velocities.append(frame_velocities(positions, initial, scenario.frame_dt))
+            self.velocities.append(frame_velocities(positions, initial, scenario.frame_dt, scenario.kinematic))
         self.dim = self.spec.dim
         counts = [len(p) - 1 for p in (self.positions or self.states)]
         self._starts = np.concatenate([[0], np.cumsum(counts)])
@@ -399,6 +427,12 @@ class FrameDataset(torch.utils.data.Dataset):
         k, t = self.locate(int(index))
         if self.states:
             return self._eulerian(self.scenarios[k], self.states[k], t, noise_seed)
+        return self.scenarios[k].graph(*self.sample_state(k, t, noise_seed))
+
+    def sample_state(self, k: int, t: int, noise_seed=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(pos, velocity, target) of the Lagrangian sample of frame t of trajectory k, (N, d)
+        float64 of every scenario node: the inputs (with the training noise drawn from
+        ``noise_seed``, if given) and the one-step target of its graph."""
         scenario, positions, velocities = self.scenarios[k], self.positions[k], self.velocities[k]
         pos, velocity = positions[t].copy(), velocities[t].copy()
         target = velocities[t + 1] - velocities[t]
@@ -410,7 +444,7 @@ class FrameDataset(torch.utils.data.Dataset):
             pos += dx
             velocity += dx / scenario.frame_dt + dv
             target = target - (1.0 + self.noise.gamma) * dx / scenario.frame_dt - dv
-        return scenario.graph(pos, velocity, target)
+        return pos, velocity, target
 
     def _eulerian(self, scenario: Scenario, states: np.ndarray, t: int, noise_seed) -> LevelGraph:
         """The sample of frame t of an Eulerian trajectory: noise on the input fields of free

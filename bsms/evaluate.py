@@ -5,7 +5,10 @@ model is rolled out from frame 0 of every trajectory, and the MPM solver is run 
 (:mod:`bsms.solver_runs`) at the data's own settings -- the ground truth: its re-run must
 reproduce the stored trajectory -- and at cheaper settings. Every learned model and every
 solver setting becomes one point (wall seconds per simulated second, rollout RMSE) of the
-speed-accuracy chart, timed in this same run on this same machine.
+speed-accuracy chart, timed in this same run on this same machine and the same CPU threads (the
+solver runs get the evaluation's thread count as solver.threads). Every row names the rows that
+dominate it (:mod:`bsms.pareto`: at least as fast and as accurate, strictly better in one); the
+chart draws the Pareto front.
 
 Datasets converted from other sources (DeepMind's, the BSMS-GNN authors') have no scene for the
 solver to re-run: evaluate them with ``--no-solver`` (config: ``evaluate.solver: []``); their
@@ -31,14 +34,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from bsms import viz
+from bsms import pareto, viz
 from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.data import Scenario
 from bsms.fields import eulerian_state, initial_velocity, spec_of, world_positions
 from bsms.rollout import body_size, field_metrics, peak_memory_mb, rollout_metrics, rollouts, summarize
 from bsms.run import EvaluateConfig, convert_fix, dataset_folder, load_model, resolve_device, split_files
-from bsms.solver_runs import SOLVER_SETTINGS, frame_dt, free_nodes, run_solver
+from bsms.solver_runs import SOLVER_SETTINGS, frame_dt, free_nodes, run_solver, setting_label
 from datagen.atomic import atomic_path
 from datagen.config import output_folder
 from datagen.dataset import DatasetError, load
@@ -68,7 +71,8 @@ def _learned(model, config, trajectories, cache_dir, frames: list[int], options:
     scenarios = [Scenario.from_trajectory(t, config.graph, cache_dir, spec=spec) for t in trajectories]
     if spec.is_lagrangian:
         truths = [world_positions(spec, t) for t in trajectories]
-        known = [s.full(w[: n + 1]) for s, w, n in zip(scenarios, truths, frames, strict=True)]
+        known = [s.positions(w[: n + 1], None if t.obstacle_positions is None else t.obstacle_positions[: n + 1])
+                 for s, w, n, t in zip(scenarios, truths, frames, trajectories, strict=True)]
         initial = [s.full(initial_velocity(spec, t, w)[None], 0.0)[0]
                    for s, t, w in zip(scenarios, trajectories, truths, strict=True)]
         results = rollouts(model, scenarios, [k[0] for k in known], initial, frames, known, device=device)
@@ -104,7 +108,8 @@ def _pictures(out: Path, k: int, trajectory, result, frames: int, spec) -> Path:
     body = result.positions[:, : trajectory.mesh.n_nodes]
     obstacles, colour, data = None, None, {}
     if trajectory.obstacle_nodes is not None and len(trajectory.obstacle_nodes):
-        obstacles = (trajectory.obstacle_nodes, trajectory.obstacle_facets)
+        moving = trajectory.obstacle_positions
+        obstacles = (trajectory.obstacle_nodes if moving is None else moving[: len(body)], trajectory.obstacle_facets)
     if spec.is_lagrangian:
         truth = world_positions(spec, trajectory)[: frames + 1]
         data["error"] = np.linalg.norm(body - truth[: len(body)], axis=-1)
@@ -156,10 +161,16 @@ def _roll_out(results: _Results, methods, trajectories, cache_dir: Path, options
 
 
 def _run_solvers(results: _Results, trajectories, options: EvaluateConfig, progress: bool) -> None:
+    """Every solver setting on every trajectory, on the threads the learned models were timed on;
+    results.solver keyed by each setting's label (:func:`bsms.solver_runs.setting_label`)."""
+    runs = {setting: [] for setting in options.solver}
     for trajectory in tqdm(trajectories, desc="solver runs", unit="traj", disable=not progress or not options.solver):
+        done = {}
         for setting in options.solver:
-            metrics = run_solver(trajectory, setting, _frames(trajectory, options), options.bound)
-            results.solver[SOLVER_SETTINGS[setting]].append(metrics)
+            done[setting] = run_solver(trajectory, setting, _frames(trajectory, options), options.bound,
+                                       threads=torch.get_num_threads(), done=done)
+            runs[setting].append(done[setting])
+    results.solver = {setting_label(setting, metrics): metrics for setting, metrics in runs.items()}
 
 
 # ----------------------------------------------------------------------------- summary
@@ -171,10 +182,13 @@ def _summary_rows(results: _Results) -> list[dict]:
         used = [r for r in runs if "skipped" not in r]
         if not used:
             continue
-        row = {"label": label, "kind": "solver", **summarize(used)}
+        row = {"label": label, "kind": "solver", "setting": used[0]["setting"], **summarize(used)}
         failed = [r["failed"] for r in used if "failed" in r]
         if failed:
             row["failed"] = failed[0]
+        factors = [r["dt_factor"] for r in used if "dt_factor" in r]
+        if factors:  # the time step over the data's (the smallest over trajectories)
+            row["dt_factor"] = min(factors)
         if "max_difference_from_stored" in used[0]:
             row["max_difference_from_stored"] = max(r["max_difference_from_stored"] for r in used)
         rows.append(row)
@@ -182,6 +196,7 @@ def _summary_rows(results: _Results) -> list[dict]:
     for row in rows:
         if truth is not None and row.get("seconds_per_sim_second"):
             row["speedup"] = truth["seconds_per_sim_second"] / row["seconds_per_sim_second"]
+    pareto.mark_rows(rows, reference=GROUND_TRUTH)
     return rows
 
 
@@ -192,9 +207,12 @@ def _ground_truth_row(rows: list[dict]) -> dict | None:
 def _charts(out: Path, results: _Results, frame_interval: float, bound: float) -> None:
     truth = _ground_truth_row(results.rows)
     points = [{"label": r["label"], "kind": "ground_truth" if r is truth else r["kind"],
-               "seconds_per_sim_second": r["seconds_per_sim_second"], "rmse": r["rmse_all"],
-               "unstable": r["unstable"]} for r in results.rows]
-    viz.speed_accuracy_chart(points, out / "speed_accuracy.png")
+               "seconds_per_sim_second": r["seconds_per_sim_second"], "error": pareto.row_point(r, GROUND_TRUTH)[1],
+               "unstable": r["unstable"] or bool(r.get("failed")), "dominated": bool(r["dominated_by"]),
+               "front": r["pareto_front"]} for r in results.rows]
+    field_name = next((r["field"] for r in results.rows if r.get("field")), None)
+    scale = f"{field_name} scale" if field_name else "body size"
+    viz.speed_accuracy_chart(points, out / "speed_accuracy.png", ylabel=f"rollout RMSE / {scale} (whole rollout)")
     curves = {label: [m["error_curve"] for m in metrics] for label, metrics in results.learned.items()}
     curves.update({label: [r["error_curve"] for r in runs if "error_curve" in r]
                    for label, runs in results.solver.items()
@@ -247,13 +265,21 @@ def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateCon
     _charts(out, results, frame_dt(trajectories[0]), options.bound)
     training = _training_curve(run_dir, out)
     details = {"run": str(run_dir), "split": options.split, "trajectories": [str(f) for f in files],
-               "step": int(state["step"]), "rows": results.rows, "learned": results.learned,
-               "solver": results.solver}
+               "step": int(state["step"]), **_threads(trajectories), "rows": results.rows,
+               "learned": results.learned, "solver": results.solver}
     with atomic_path(out / "metrics.json") as tmp:
         tmp.write_text(json.dumps(details, indent=1, default=_json_default))
     heading = _heading(config, state, options, len(files), dataset_name, model.spec)
     report = _write_report(run_dir, heading, results, options.bound, training, model.spec)
     return {"rows": results.rows, "report": report}
+
+
+def _threads(trajectories) -> dict:
+    """The CPU threads every point was timed on (learned rollouts and solver runs alike: the
+    solver runs get solver.threads set to it), and the solver.threads the data was made with."""
+    made = {t.config.get("solver", {}).get("threads") for t in trajectories}
+    return {"threads": torch.get_num_threads(),
+            "data_solver_threads": sorted(made, key=lambda t: (t is None, t or 0))}
 
 
 def _check_data(methods, trajectories, files, options: EvaluateConfig, config) -> None:
@@ -286,6 +312,8 @@ def _json_default(value):
 def _fmt(value, digits: int = 3) -> str:
     if value is None:
         return "-"
+    if isinstance(value, list):  # labels (dominated by)
+        return "; ".join(str(v) for v in value) or "none"
     if isinstance(value, float):
         if math.isnan(value):
             return "-"
@@ -301,7 +329,7 @@ _COLUMNS = [
     ("rmse_all", "RMSE all (m)"), ("rmse_all_std", "± std"), ("rel_all", "RMSE all / body size"),
     ("unstable", "unstable rollouts"), ("first_unstable_step", "first unstable step"),
     ("seconds_per_step", "s per frame"), ("seconds_per_sim_second", "s per simulated s"),
-    ("speedup", "speed-up vs solver"), ("peak_memory_mb", "peak memory (MB)"),
+    ("speedup", "speed-up vs solver"), ("peak_memory_mb", "peak memory (MB)"), ("dominated_by", "dominated by"),
 ]
 
 
@@ -333,7 +361,7 @@ def _write_tables(out: Path, rows: list[dict], columns=_COLUMNS) -> None:
     with atomic_path(out / "speed_accuracy.csv") as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, [key for key, _ in _COLUMNS], extrasaction="ignore")
         writer.writeheader()
-        writer.writerows(rows)
+        writer.writerows({k: _fmt(v) if isinstance(v, list) else v for k, v in row.items()} for row in rows)
     with atomic_path(out / "speed_accuracy.md") as tmp:
         tmp.write_text(_table(rows, columns) + "\n")
 
@@ -347,7 +375,8 @@ def _heading(config, state, options: EvaluateConfig, n_files: int, dataset_name:
         f"# Evaluation of run `{config.name}`", "",
         f"Model `{config.model.name}` after {int(state['step'])} training steps; {n_files} `{options.split}` "
         f"trajectories of dataset `{dataset_name}`; rollouts from frame 0 over {steps}. {errors}; times are wall "
-        "seconds on this machine, measured in this run.",
+        f"seconds on this machine, measured in this run on {torch.get_num_threads()} CPU thread(s), learned models "
+        "and solver alike.",
     ]
 
 
@@ -380,7 +409,7 @@ def _write_report(run_dir: Path, heading: list[str], results: _Results, bound: f
         "The solver at the data's settings is the ground truth (no error of its own); cheaper solver "
         "settings are the honest baseline a surrogate must beat." if results.solver else
         "No solver ran (--no-solver, or evaluate.solver: []; converted datasets have no scene to re-run): the "
-        "chart shows the learned models alone.", "",
+        "chart shows the learned models alone.", "", *pareto.front_lines(results.rows, GROUND_TRUTH), "",
         "## Error against time", "", "![rollout error](evaluation/error_vs_step.png)", "",
         "## Stability", "", *_stability(results.rows, bound, size),
     ]

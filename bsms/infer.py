@@ -76,7 +76,9 @@ def parse_overrides(items) -> dict:
 @dataclass
 class _Placement:
     """Meshes placed together in the family's setting: the simulate() config, the scene, its
-    scenario and initial state (all scenario nodes), frames and frame interval."""
+    scenario and initial state (all scenario nodes), frames and frame interval; where the scene's
+    obstacles move, their stored nodes' positions at every frame (``obstacle_path`` (T, M, d))
+    and the positions of all scenario nodes that prescribe the kinematic ones (``known``)."""
 
     paths: list[Path]
     sim_config: dict
@@ -87,6 +89,17 @@ class _Placement:
     v0: np.ndarray
     steps: int
     frame_dt: float
+    obstacle_path: np.ndarray | None = None
+    known: np.ndarray | None = None
+
+
+def _obstacle_path(scene, steps: int, frame_dt: float) -> np.ndarray | None:
+    """(steps + 1, M, d) positions of the scene's obstacle nodes at the frames of a rollout, or
+    None where they stand still (or the scene cannot say where they go)."""
+    obstacle_positions = getattr(scene, "obstacle_positions", None)
+    if obstacle_positions is None or scene.obstacle_nodes is None or not len(scene.obstacle_nodes):
+        return None
+    return obstacle_positions(frame_dt * np.arange(steps + 1))
 
 
 def _place(paths: list[Path], config, dconfig: dict, overrides: dict | None, steps: int | None) -> _Placement:
@@ -101,10 +114,13 @@ def _place(paths: list[Path], config, dconfig: dict, overrides: dict | None, ste
         obstacle_nodes=scene.obstacle_nodes, obstacle_facets=scene.obstacle_facets, params=resolved["params"],
         source=f"the scene of {', '.join(map(str, paths))}",
     )
-    x0 = scenario.full(scene.x[scene.tracked])
+    frames = int(resolved["output"]["frames"])
+    path = _obstacle_path(scene, frames, frame_dt)
+    body = scene.x[scene.tracked]
+    known = None if path is None else scenario.positions(np.broadcast_to(body, (frames + 1, *body.shape)), path)
+    x0 = scenario.full(body) if known is None else known[0]
     v0 = scenario.full(scene.v[scene.tracked][None], 0.0)[0]
-    return _Placement(paths, sim_config, resolved, scene, scenario, x0, v0, int(resolved["output"]["frames"]),
-                      frame_dt)
+    return _Placement(paths, sim_config, resolved, scene, scenario, x0, v0, frames, frame_dt, path, known)
 
 
 def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder: Path, solver: bool,
@@ -133,7 +149,7 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
         summary.update({k: metrics[k] for k in ("rmse_1", "rmse_50", "rmse_all", "rel_all", "unstable_step")})
         summary["speedup"] = summary["solver_seconds_per_step"] / result.seconds_per_step
     folder.mkdir(parents=True, exist_ok=True)
-    _write_outputs(folder, placed.scene, predicted, truth, placed.frame_dt)
+    _write_outputs(folder, placed.scene, predicted, truth, placed.frame_dt, placed.obstacle_path)
     with atomic_path(folder / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=float))
     return summary
@@ -173,7 +189,7 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     groups = [[p] for p in paths] if separately else [paths]
     placed = [_place(group, config, dconfig, overrides, steps) for group in groups]
     results = rollouts(model, [p.scenario for p in placed], [p.x0 for p in placed], [p.v0 for p in placed],
-                       [p.steps for p in placed], device=device, progress=progress)
+                       [p.steps for p in placed], [p.known for p in placed], device=device, progress=progress)
     folders = _subfolders(folder, paths) if separately else [folder]
     summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound)
                  for p, result, where in zip(placed, results, folders, strict=True)]
@@ -185,7 +201,8 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     return summary
 
 
-def _write_outputs(folder: Path, scene, predicted: np.ndarray, truth, frame_dt: float) -> None:
+def _write_outputs(folder: Path, scene, predicted: np.ndarray, truth, frame_dt: float,
+                   obstacle_path: np.ndarray | None = None) -> None:
     times = frame_dt * np.arange(len(predicted))
     data = {}
     if truth is not None:
@@ -193,7 +210,8 @@ def _write_outputs(folder: Path, scene, predicted: np.ndarray, truth, frame_dt: 
     viz.write_xdmf(folder / "prediction.xdmf", scene.body.cells, predicted, times, data)
     obstacles = None
     if scene.obstacle_nodes is not None and len(scene.obstacle_nodes):
-        obstacles = (scene.obstacle_nodes, scene.obstacle_facets)
+        nodes = scene.obstacle_nodes if obstacle_path is None else obstacle_path[: len(predicted)]
+        obstacles = (nodes, scene.obstacle_facets)
     viz.rollout_gif(scene.body.cells, predicted, folder / "prediction.gif", truth=truth, obstacles=obstacles,
                     frame_dt=frame_dt)
 

@@ -2,7 +2,8 @@
 
 A rollout starts from frame 0 (positions and the initial velocity) and applies the model
 step after step: v_{t+1} = v_t + dv, x_{t+1} = x_t + dt v_{t+1} for free nodes; clamped and
-obstacle nodes follow their known motion (the trajectory's positions, or rest). On Eulerian
+obstacle nodes follow their known motion (the trajectory's positions, moving obstacles
+included, or rest), and the model sees the velocity of their coming step. On Eulerian
 data (:mod:`bsms.fields`) the state is the node fields on the fixed mesh: each output field
 is advanced by its predicted change or replaced by its predicted value, and the fields of
 prescribed nodes (inflow, walls, airfoil) come from the data.
@@ -33,7 +34,7 @@ from bsms.models.precision import network_dtype
 
 __all__ = [
     "Rollout", "rollout", "rollouts", "rollout_metrics", "field_metrics", "summarize", "body_size", "peak_memory_mb",
-    "DEFAULT_BOUND",
+    "DEFAULT_BOUND", "integrate",
 ]
 
 DEFAULT_BOUND = 0.5  # relative error (of the body size) at which a rollout counts as unstable
@@ -70,6 +71,13 @@ class Rollout:
         return float(np.mean(self.step_seconds)) if len(self.step_seconds) else float("nan")
 
 
+def integrate(position, velocity, change, dt: float):
+    """The learned step of free nodes: (x + dt v', v') with v' = v + dv, for numpy arrays or torch
+    tensors (multi-step training, :mod:`bsms.unroll`, integrates its own predictions with it)."""
+    velocity = velocity + change
+    return position + dt * velocity, velocity
+
+
 def _synchronize(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -95,9 +103,18 @@ class _Track:
         return self.finite and t < self.steps
 
     def frame(self, t: int):
-        """The graph arrays of frame t (Eulerian: the spec's input fields on the fixed mesh)."""
-        fields = None if self.states is None else self.spec.input_values(self.states[t])
-        return self.scenario.frame(self.positions[t], self.velocities[t], fields=fields)
+        """The graph arrays of frame t (Eulerian: the spec's input fields on the fixed mesh).
+        Lagrangian: kinematic nodes get the velocity of their coming step, as in training
+        (:func:`~bsms.data.frame_velocities`): (known x_{t+1} - x_t) / dt, 0 without known positions."""
+        if self.states is not None:
+            fields = self.spec.input_values(self.states[t])
+            return self.scenario.frame(self.positions[t], self.velocities[t], fields=fields)
+        velocity, kinematic = self.velocities[t], self.scenario.kinematic
+        if kinematic.any():
+            velocity = velocity.copy()
+            velocity[kinematic] = 0.0 if self.known is None else \
+                (self.known[t + 1][kinematic] - self.positions[t][kinematic]) / self.scenario.frame_dt
+        return self.scenario.frame(self.positions[t], velocity)
 
     def advance(self, t: int, change: np.ndarray) -> None:
         """Frame t + 1 from frame t and the model's output (N, node_out) of every scenario node:
@@ -106,8 +123,7 @@ class _Track:
             self._advance_fields(t, change)
             return
         kinematic, dt = self.scenario.kinematic, self.scenario.frame_dt
-        velocity = self.velocities[t] + change
-        position = self.positions[t] + dt * velocity
+        position, velocity = integrate(self.positions[t], self.velocities[t], change, dt)
         if self.known is not None:
             position[kinematic] = self.known[t + 1][kinematic]
             velocity[kinematic] = (self.known[t + 1][kinematic] - self.positions[t][kinematic]) / dt

@@ -151,7 +151,19 @@ class TrainConfig:
     the normalisers learn from before they freeze; log/valid/checkpoint cadence in steps;
     valid_samples: validation samples (evenly spread over the split); device: auto, cpu, cuda
     or cuda:N; amp: bfloat16 autocast of the network (CUDA, or CPUs with AMX-BF16 or AVX512-BF16;
-    :mod:`bsms.models.precision`); workers: data-loading processes."""
+    :mod:`bsms.models.precision`); workers: data-loading processes.
+
+    Multi-step (pushforward) training (:mod:`bsms.unroll`): unroll: model steps per sample (K;
+    1: one-step training). A sample is frame t of a trajectory with t + K <= T - 1; step 0 reads
+    frame t (with the training noise), each later step the model's own prediction, integrated
+    as a rollout integrates (kinematic nodes from the data), on a graph rebuilt from the
+    predicted positions, with the target that brings that state to the data's next frame.
+    unroll_gradient: ``last`` (pushforward: the first K-1 steps run without gradient, the last
+    step's loss is trained), ``all`` (the mean of every step's loss; each step's state is
+    passed on detached), ``through`` (the mean of every step's loss, with gradients through the
+    predicted states into the later steps' inputs and targets). unroll_warmup: optimiser steps
+    of one-step training (on the same samples) before unrolling starts. Normalisers learn from
+    step 0 only; the validation RMSE stays one-step."""
 
     steps: int = 10_000
     batch_size: int = 2
@@ -165,11 +177,14 @@ class TrainConfig:
     amp: bool = False
     workers: int = 0
     progress: bool = True
+    unroll: int = 1
+    unroll_gradient: Literal["last", "all", "through"] = "last"
+    unroll_warmup: int = 0
 
     def validate(self, prefix: str) -> None:
         _at_least(self, prefix, 1, ("steps", "batch_size", "normalizer_steps", "log_every", "valid_every",
-                                    "valid_samples", "checkpoint_every"))
-        _at_least(self, prefix, 0, ("seed", "workers"))
+                                    "valid_samples", "checkpoint_every", "unroll"))
+        _at_least(self, prefix, 0, ("seed", "workers", "unroll_warmup"))
         _check_device(self.device, f"{prefix}.device")
 
 
@@ -182,9 +197,9 @@ class EvaluateConfig:
     marks a rollout unstable; solver: the solver settings to time and compare
     (:data:`bsms.solver_runs.SOLVER_SETTINGS`; ``ground_truth`` is the speed-up's baseline);
     gifs: rollout GIFs to draw; device: auto, cpu or cuda[:N]; threads: CPU threads of the
-    learned models while timed (null: torch's default). The solver runs with the threads its
-    dataset config gives (the family configs use 1), so the default of 1 times both alike;
-    small graphs also run fastest on one thread. batch: trajectories rolled out together, one
+    learned models and of the solver runs while timed (null: torch's default), so that every
+    point is timed alike whatever solver.threads the data was made with (metrics.json records
+    both); small graphs run fastest on one thread. batch: trajectories rolled out together, one
     model call per step on the batch of their graphs (a rollout's time per step is its share
     of the batch's step; 1: each rollout alone).
     """

@@ -2,9 +2,11 @@
 
 ``ground_truth`` re-runs the trajectory's generating config unchanged: it must reproduce the
 stored trajectory, and its wall time is what a learned model's speed-up is measured against.
-The cheaper settings -- a coarser background mesh, fewer particles (a coarser body mesh,
-compared at the ground truth's nodes by interpolating its displacement), a larger time step
--- are the honest baseline a surrogate must beat on the speed-accuracy chart.
+The cheaper settings -- A-ULMPM's adaptive reference configuration (the fast solver a user
+would run instead), a coarser background mesh, fewer particles (a coarser body mesh, compared
+at the ground truth's nodes by interpolating its displacement), a larger time step up to the
+largest one the solver survives -- are the honest baseline a surrogate must beat on the
+speed-accuracy chart.
 """
 
 from __future__ import annotations
@@ -19,29 +21,50 @@ from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 from bsms.data import NodeType
 from bsms.rollout import body_size, rollout_metrics
 from datagen import simulate
+from datagen.config import ConfigError
 from datagen.mpm import SimulationError
 from datagen.simulation import SOLVER_DEFAULTS
 
-__all__ = ["SOLVER_SETTINGS", "setting_config", "interpolate_to", "run_solver", "frame_dt", "free_nodes"]
+__all__ = ["SOLVER_SETTINGS", "STABILITY_FACTORS", "setting_config", "setting_label", "interpolate_to", "run_solver",
+           "largest_stable", "stability_limit", "frame_dt", "free_nodes"]
 
 # name -> label (how the trajectory's generating config changes: setting_config)
 SOLVER_SETTINGS = {
     "ground_truth": "solver, data settings (ground truth)",
+    "adaptive": "solver, adaptive reference (A-ULMPM)",
+    "coarse_mesh_1.5": "solver, background mesh 1.5x coarser",
     "coarse_mesh": "solver, background mesh 2x coarser",
+    "adaptive_coarse_mesh": "solver, adaptive reference, background mesh 2x coarser",
     "fewer_particles": "solver, body mesh 1.5x coarser",
     "large_step": "solver, time step 2x larger",
+    "stability_limit": "solver, largest stable time step",
 }
+# background mesh coarsening (params.mesh_size x factor) of the settings that have one
+_MESH_FACTOR = {"coarse_mesh_1.5": 1.5, "coarse_mesh": 2.0, "adaptive_coarse_mesh": 2.0}
+# stability_limit: the time step x these factors of the data's, tried in order until a run fails
+# or goes unstable (at most this many solver runs per trajectory)
+STABILITY_FACTORS = (2.0, 4.0, 8.0, 16.0)
 
 
-def setting_config(base: dict, setting: str, frames: int) -> dict | None:
-    """The generating config ``base`` changed for ``setting`` (None when the scene lacks the knob)."""
+def setting_config(base: dict, setting: str, frames: int, dt: float | None = None) -> dict | None:
+    """The generating config ``base`` changed for ``setting`` (None when the scene lacks the knob,
+    or for ``adaptive*`` when the data already used the adaptive reference configuration).
+
+    ``dt``: the time step (s) to try, for ``stability_limit`` only (required there).
+    """
+    if setting not in SOLVER_SETTINGS:
+        raise ValueError(f"unknown solver setting {setting!r}; choose from {', '.join(SOLVER_SETTINGS)}")
     config = copy.deepcopy(base)
     config["output"] = {**config.get("output", {}), "frames": frames, "step_diagnostics": False}
     params, solver = config.setdefault("params", {}), config.setdefault("solver", {})
-    if setting == "coarse_mesh":
+    if setting.startswith("adaptive"):
+        if solver.get("reference", SOLVER_DEFAULTS["reference"]) == "adaptive":
+            return None
+        solver["reference"] = "adaptive"
+    if setting in _MESH_FACTOR:
         if "mesh_size" not in params:
             return None
-        params["mesh_size"] = 2.0 * params["mesh_size"]
+        params["mesh_size"] = _MESH_FACTOR[setting] * params["mesh_size"]
     elif setting == "fewer_particles":
         if "body_size" not in params:
             return None
@@ -51,7 +74,22 @@ def setting_config(base: dict, setting: str, frames: int) -> dict | None:
             solver["dt"] = 2.0 * solver["dt"]
         else:
             solver["cfl"] = 2.0 * solver.get("cfl", SOLVER_DEFAULTS["cfl"])
+    elif setting == "stability_limit":
+        if dt is None:
+            raise ValueError("setting 'stability_limit' needs the time step to try (dt)")
+        solver["dt"] = float(dt)
     return config
+
+
+def setting_label(setting: str, runs: list[dict]) -> str:
+    """The chart's and report's label of ``setting`` after its ``runs``: for ``stability_limit``
+    with the time step factor reached (a range when trajectories differ)."""
+    label = SOLVER_SETTINGS[setting]
+    factors = [r["dt_factor"] for r in runs if setting == "stability_limit" and "dt_factor" in r]
+    if not factors:
+        return label
+    low, high = min(factors), max(factors)
+    return f"{label} ({low:.3g}x)" if f"{low:.3g}" == f"{high:.3g}" else f"{label} ({low:.3g}x-{high:.3g}x)"
 
 
 def interpolate_to(truth_rest: np.ndarray, truth_body: np.ndarray, other_rest: np.ndarray,
@@ -93,17 +131,41 @@ def _failed(message: str, seconds: float, frames: int, trajectory) -> dict:
             "error_curve": np.full(frames, np.inf)}
 
 
-def run_solver(trajectory, setting: str, frames: int, bound: float) -> dict:
+def run_solver(trajectory, setting: str, frames: int, bound: float, threads: int | None = None,
+               done: dict | None = None) -> dict:
     """Metrics (:func:`bsms.rollout.rollout_metrics`) and timing of the solver at ``setting``
-    over the first ``frames`` frames of ``trajectory``; {"skipped": why} without the knob."""
-    config = setting_config(trajectory.config, setting, frames)
-    if config is None:
-        return {"skipped": f"the scene has no knob for {setting}"}
+    over the first ``frames`` frames of ``trajectory``; {"skipped": why} without the knob.
+
+    threads: torch CPU threads of the run (solver.threads; None: the data config's). done: the
+    metrics of this trajectory's runs at other settings (name -> metrics), which
+    ``stability_limit`` reuses (:func:`stability_limit`). Every result names its ``setting``;
+    a run also gives its time step (``dt``, ``dt_factor``: over the data's, ``substeps``).
+    """
+    if setting == "stability_limit":
+        metrics = stability_limit(trajectory, frames, bound, threads, done)
+    else:
+        config = setting_config(trajectory.config, setting, frames)
+        if config is None:
+            adaptive = trajectory.config.get("solver", {}).get("reference") == "adaptive"
+            metrics = {"skipped": "the data already used the adaptive reference configuration"
+                       if adaptive and setting.startswith("adaptive") else f"the scene has no knob for {setting}"}
+        else:
+            metrics = _measure(trajectory, config, frames, bound, threads, ground_truth=setting == "ground_truth")
+    return {**metrics, "setting": setting}
+
+
+def _measure(trajectory, config: dict, frames: int, bound: float, threads: int | None,
+             ground_truth: bool = False) -> dict:
+    """Run ``config`` and measure it against ``trajectory`` (failed: infinite errors)."""
+    if threads is not None:
+        config = {**config, "solver": {**config["solver"], "threads": int(threads)}}
     start = time.perf_counter()
     try:
         other = simulate(config)
     except SimulationError as exc:
         return _failed(str(exc).splitlines()[0], time.perf_counter() - start, frames, trajectory)
+    except ConfigError as exc:  # e.g. a doubled solver.cfl above 1
+        return {"skipped": str(exc).splitlines()[0]}
     truth = trajectory.positions[: frames + 1]
     positions = other.positions
     if positions.shape[1:] != truth.shape[1:]:
@@ -113,6 +175,60 @@ def run_solver(trajectory, setting: str, frames: int, bound: float) -> dict:
     metrics = rollout_metrics(positions, truth, free_nodes(trajectory), body_size(trajectory.mesh.nodes), bound)
     metrics["seconds_per_sim_second"] = other.wall_time / (frames * frame_dt(trajectory))
     metrics["seconds_per_step"] = other.wall_time / frames
-    if setting == "ground_truth":
+    metrics.update(dt=float(other.dt), dt_factor=float(other.dt / trajectory.dt), substeps=int(other.substeps))
+    if ground_truth:
         metrics["max_difference_from_stored"] = float(np.abs(other.positions - truth).max())
     return metrics
+
+
+def _stable(metrics: dict) -> bool:
+    return "failed" not in metrics and "skipped" not in metrics and metrics.get("unstable_step") is None
+
+
+def largest_stable(trial, factors=STABILITY_FACTORS) -> tuple[dict | None, list[dict]]:
+    """The bounded search for the largest stable time step: ``trial(factor)`` -> metrics for each
+    factor in order, stopping at the first run that failed, was skipped or went unstable, and
+    after a run that takes one solver step per frame (``substeps`` 1: larger factors change
+    nothing). -> (metrics of the last stable run, None when the first was not; one record per
+    try: factor, stable, and the run's dt_factor, unstable_step, failed or skipped)."""
+    best, tries = None, []
+    for factor in factors:
+        metrics = trial(factor)
+        stable = _stable(metrics)
+        tries.append({"factor": float(factor), "stable": stable,
+                      **{k: metrics[k] for k in ("dt_factor", "unstable_step", "failed", "skipped") if k in metrics}})
+        if not stable:
+            break
+        best = metrics
+        if metrics.get("substeps") == 1:
+            break
+    return best, tries
+
+
+def stability_limit(trajectory, frames: int, bound: float, threads: int | None = None, done: dict | None = None,
+                    factors=STABILITY_FACTORS) -> dict:
+    """The solver at the largest time step it survives on ``trajectory``: the data's time step x
+    ``factors`` in turn (:func:`largest_stable`), at most ``len(factors)`` runs; the last stable
+    run is the result, with ``search`` (the tries). A run is stable when the solver does not
+    stop and the error stays within ``bound`` x body size (the evaluation's instability bound).
+
+    done: runs of this trajectory already made (setting -> metrics): ``large_step`` is the
+    first try when it took the same number of substeps as x2 (it does: ceil(ceil(x)/2) =
+    ceil(x/2)); when even the first try fails, the limit is the data's own time step and the
+    result is ``ground_truth``'s run (made here when not done).
+    """
+    done = done or {}
+    doubled = done.get("large_step") or {}
+
+    def trial(factor: float) -> dict:
+        if factor == 2.0 and doubled.get("substeps") == math.ceil(trajectory.substeps / 2):
+            return doubled
+        config = setting_config(trajectory.config, "stability_limit", frames, dt=factor * trajectory.dt)
+        return _measure(trajectory, config, frames, bound, threads)
+
+    best, tries = largest_stable(trial, factors)
+    if best is None:
+        best = done.get("ground_truth") or _measure(
+            trajectory, setting_config(trajectory.config, "ground_truth", frames), frames, bound, threads)
+    best = {k: v for k, v in best.items() if k not in ("max_difference_from_stored", "setting")}
+    return {**best, "search": tries}

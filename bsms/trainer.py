@@ -13,6 +13,8 @@ Launched with ``torchrun --nproc_per_node K``, each process takes every K-th sam
 global batch; gradients are summed over processes after each process divided its squared
 error sum by the free-node count of the whole batch, which makes the update identical to
 one process on the whole batch (normaliser statistics are summed over processes too).
+Multi-step training (``train.unroll``) unrolls each sample over several model steps
+(:mod:`bsms.unroll`); the validation RMSE stays one-step.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ from bsms.run import (
     split_files,
     write_run_files,
 )
+from bsms.unroll import UnrollBatch, UnrollSamples, collate, unrolled_loss
 from datagen.atomic import atomic_path
 
 __all__ = ["Trainer", "TrainingDiverged", "lr_factor", "METRICS_FIELDS"]
@@ -56,7 +59,8 @@ METRICS_FIELDS = ("step", "loss", "lr", "seconds", "samples_per_s", "valid_rmse"
 _OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.workers", "dataset.generate",
                 "evaluate.batch"}
 # Keys added after runs were saved, with the value that keeps what those runs did.
-_ADDED = {"dataset.kind": "mpm", "graph.contact_distance": None}
+_ADDED = {"dataset.kind": "mpm", "graph.contact_distance": None, "train.unroll": 1, "train.unroll_gradient": "last",
+          "train.unroll_warmup": 0}
 
 
 def _flat(data: dict, prefix: str = "") -> dict:
@@ -139,10 +143,6 @@ def _ignore_interrupts(worker_id: int) -> None:
         signal.signal(sig, signal.SIG_IGN)
 
 
-def _collate(graphs):
-    return Batch.from_data_list(graphs)
-
-
 # ----------------------------------------------------------------------------- trainer
 class Trainer:
     """Trains the model of ``config`` on its dataset, writing the run folder (rank 0 only).
@@ -169,9 +169,10 @@ class Trainer:
                                       cache_dir=cache, progress=progress)
         self.valid_set = FrameDataset(split_files(self.dataset_folder, "valid"), config.graph, cache_dir=cache,
                                       progress=progress)
-        if len(self.train_set) < config.train.batch_size:
+        self.samples = UnrollSamples(self.train_set, config.train.unroll)  # (trajectory, t) with t + K <= T - 1
+        if len(self.samples) < config.train.batch_size:
             raise ConfigError(f"config key 'train.batch_size' ({config.train.batch_size}) exceeds the "
-                              f"{len(self.train_set)} training samples of {self.dataset_folder}")
+                              f"{len(self.samples)} training samples of {self.dataset_folder}")
         _seed_everything(config.train.seed)
         self.model = build_model(config, self.train_set.dim, self.train_set.spec).to(self.device)
         if self.world > 1:
@@ -295,7 +296,7 @@ class Trainer:
     # -- batches
     def global_batch(self, step: int) -> list[int]:
         """Sample indices of ``step`` (all processes): a slice of a per-epoch permutation."""
-        n, size = len(self.train_set), self.config.train.batch_size
+        n, size = len(self.samples), self.config.train.batch_size
         per_epoch = n // size
         epoch, k = divmod(step, per_epoch)
         order = np.random.default_rng([self.config.train.seed, epoch]).permutation(n)
@@ -310,20 +311,23 @@ class Trainer:
         # (a resumed run then continues the global stream, e.g. of dropout, exactly)
         generator = torch.Generator().manual_seed(self.config.train.seed * 1_000_003 + start)
         return torch.utils.data.DataLoader(
-            self.train_set, batch_sampler=keys, collate_fn=_collate, num_workers=self.config.train.workers,
+            self.samples, batch_sampler=keys, collate_fn=collate, num_workers=self.config.train.workers,
             persistent_workers=False, worker_init_fn=_ignore_interrupts, generator=generator,
         )
 
     # -- one step
     def train_step(self, batch) -> float:
-        """One optimiser step on this process's part of the batch; returns the batch's loss."""
+        """One optimiser step on this process's part of the batch (an :class:`~bsms.unroll.UnrollBatch`,
+        or a PyG ``Batch`` of one-step samples), unrolled over ``train.unroll`` model steps (after
+        ``train.unroll_warmup`` steps); returns the batch's loss."""
         self.model.train()
-        batch = batch.to(self.device)
-        count = batch.loss_mask.sum().to(torch.float64)
+        batch = (batch if isinstance(batch, UnrollBatch) else UnrollBatch(batch)).to(self.device)
+        count = batch.graph.loss_mask.sum().to(torch.float64)
         if self.world > 1:
             dist.all_reduce(count)
-        accumulate = self.step < self.config.train.normalizer_steps
-        loss = self.model.loss(batch, accumulate=accumulate, reduction="sum", precision=self._precision)
+        t = self.config.train
+        loss = unrolled_loss(self.model, batch, self.samples, 1 if self.step < t.unroll_warmup else t.unroll,
+                             t.unroll_gradient, accumulate=self.step < t.normalizer_steps, precision=self._precision)
         loss = loss / count.clamp(min=1).float()
         self.optimizer.zero_grad(set_to_none=False)
         loss.backward()

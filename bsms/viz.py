@@ -87,44 +87,99 @@ def error_curves(curves: dict[str, list[np.ndarray]], frame_dt: float, path, bou
     return _save(fig, path)
 
 
-def speed_accuracy_chart(points: list[dict], path) -> Path:
-    """Wall seconds per simulated second (x) against rollout RMSE (y), one point per method.
+def speed_accuracy_chart(points: list[dict], path, ylabel: str = "rollout RMSE / body size") -> Path:
+    """Wall seconds per simulated second (x) against rollout error (y), one labelled point per method,
+    with the Pareto front (:mod:`bsms.pareto`) as a step line.
 
     points: dicts with ``label``, ``kind`` ("learned", "solver", or "ground_truth": the solver
-    at the data's own settings, drawn as a vertical line at its cost), ``seconds_per_sim_second``,
-    ``rmse`` (m; inf or nan when unstable) and ``unstable`` (count). Unstable points sit at
-    the top edge, hollow.
+    at the data's own settings, zero error, drawn as a vertical line at its cost),
+    ``seconds_per_sim_second``, ``error`` (inf or nan when unstable or failed), ``unstable``
+    (count), and optionally ``front`` (on the Pareto front) and ``dominated`` (bool).
+    Dominated points are hollow; unstable ones sit at the top edge, hollow. The step line is
+    the lowest error reachable at each cost: it steps down at every front point (to the
+    bottom edge at the ground truth's cost when the ground truth is on the front).
     """
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    finite = [p["rmse"] for p in points
-              if p["kind"] != "ground_truth" and math.isfinite(p["rmse"]) and p["rmse"] > 0]
+    finite = [p["error"] for p in points
+              if p["kind"] != "ground_truth" and math.isfinite(p["error"]) and p["error"] > 0]
     ceiling = 3 * max(finite) if finite else 1.0
     floor = min(finite) / 3 if finite else 1e-6
-    for p in points:
-        if p["kind"] == "ground_truth":
-            ax.axvline(p["seconds_per_sim_second"], color="tab:blue", ls="--", lw=1)
-            ax.annotate(p["label"], (p["seconds_per_sim_second"], ceiling), fontsize=8,
-                        color="tab:blue", xytext=(-4, 0), textcoords="offset points", ha="right", va="top")
-            continue
-        stable = math.isfinite(p["rmse"]) and p["rmse"] > 0
-        y = p["rmse"] if stable else ceiling
-        style = {"learned": ("o", "tab:red"), "solver": ("s", "tab:blue")}.get(p["kind"], ("^", "tab:gray"))
-        ax.scatter(p["seconds_per_sim_second"], y, marker=style[0], color=style[1], s=50,
-                   facecolors=style[1] if stable else "none", zorder=3)
-        note = p["label"] + ("" if stable else " (unstable)")
-        ax.annotate(note, (p["seconds_per_sim_second"], y), textcoords="offset points", xytext=(6, 4), fontsize=8)
+    notes = [_chart_point(ax, p, floor, ceiling) for p in points]
+    xs = [p["seconds_per_sim_second"] for p in points if 0 < p["seconds_per_sim_second"] < math.inf]
+    right = max(xs) * 3 if xs else 1.0
+    _front_line(ax, points, floor, right)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_ylim(floor, ceiling * 2)
-    xs = [p["seconds_per_sim_second"] for p in points if p["seconds_per_sim_second"] > 0]
     if xs:
-        ax.set_xlim(min(xs) / 2, max(xs) * 3)
+        ax.set_xlim(min(xs) / 2, right)
     ax.set_xlabel("wall seconds per simulated second (lower is faster)")
-    ax.set_ylabel("rollout position RMSE (m)")
-    ax.set_title("speed against accuracy (ground truth: the solver at the data's own settings)")
+    ax.set_ylabel(ylabel)
+    ax.set_title("speed against accuracy (ground truth: the solver at the data's own settings)", fontsize=10)
     ax.grid(alpha=0.3, which="both")
+    _chart_legend(ax, points)
+    _place_labels(fig, ax, [n for n in notes if n is not None])
     return _save(fig, path)
+
+
+def _chart_legend(ax, points: list[dict]) -> None:
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color="k", lw=1, alpha=0.6, label="Pareto front")] if any(
+        p.get("front") for p in points) else []
+    kinds = {p["kind"] for p in points}
+    handles += [Line2D([], [], marker=marker, ls="", color=colour, label=kind)
+                for kind, marker, colour in (("learned", "o", "tab:red"), ("solver", "s", "tab:blue")) if kind in kinds]
+    if any(p.get("dominated") or not math.isfinite(p["error"]) for p in points if p["kind"] != "ground_truth"):
+        handles.append(Line2D([], [], marker="s", ls="", markerfacecolor="none", markeredgecolor="gray",
+                              label="hollow: dominated or unstable"))
+    ax.legend(handles=handles, fontsize=7, loc="lower left")
+
+
+def _chart_point(ax, p: dict, floor: float, ceiling: float) -> tuple[str, float, float] | None:
+    """One method on the speed-accuracy chart: its marker (filled unless dominated or unstable; an
+    exact one, zero error, on the bottom edge) and its label to place, (text, x, y)."""
+    x = p["seconds_per_sim_second"]
+    if p["kind"] == "ground_truth":
+        ax.axvline(x, color="tab:blue", ls="--", lw=1)
+        ax.annotate(p["label"], (x, ceiling), fontsize=8, color="tab:blue", xytext=(-4, 0),
+                    textcoords="offset points", ha="right", va="top")
+        return None
+    stable = math.isfinite(p["error"])
+    y = (p["error"] if p["error"] > 0 else floor) if stable else ceiling
+    style = {"learned": ("o", "tab:red"), "solver": ("s", "tab:blue")}.get(p["kind"], ("^", "tab:gray"))
+    filled = stable and not p.get("dominated", False)
+    ax.scatter(x, y, marker=style[0], s=50, edgecolors=style[1], facecolors=style[1] if filled else "none",
+               linewidths=1.2, zorder=3)
+    notes = [n for n, on in (("unstable", not stable), ("dominated", p.get("dominated", False))) if on]
+    return p["label"] + (f" ({', '.join(notes)})" if notes else ""), x, y
+
+
+def _place_labels(fig, ax, notes: list[tuple[str, float, float]]) -> None:
+    """Label every point, highest first, each moved down (a few lines at most) until it overlaps
+    no label placed before it."""
+    renderer = fig.canvas.get_renderer()
+    boxes = []
+    for text, x, y in sorted(notes, key=lambda n: -n[2]):
+        note = ax.annotate(text, (x, y), textcoords="offset points", xytext=(6, 4), fontsize=7)
+        for shift in range(1, 6):
+            box = note.get_window_extent(renderer)
+            if not any(box.overlaps(other) for other in boxes):
+                break
+            note.xyann = (6, 4 - 9 * shift)
+        boxes.append(note.get_window_extent(renderer))
+
+
+def _front_line(ax, points: list[dict], floor: float, right: float) -> None:
+    """The Pareto front as a step line through the front points, fastest first."""
+    front = sorted((p for p in points if p.get("front")), key=lambda p: (p["seconds_per_sim_second"], p["error"]))
+    if not front:
+        return
+    xs = [p["seconds_per_sim_second"] for p in front]
+    ys = [floor if p["kind"] == "ground_truth" or p["error"] <= 0 else p["error"] for p in front]
+    ax.step([*xs, max(right, xs[-1])], [*ys, ys[-1]], where="post", color="k", lw=1, alpha=0.6,
+            label="Pareto front", zorder=2)
 
 
 def _limits(*arrays) -> tuple[np.ndarray, np.ndarray]:
@@ -161,6 +216,19 @@ def _draw_body(ax, x: np.ndarray, cells: np.ndarray, colour, vmax: float) -> Non
         ax.scatter(x[:, 0], x[:, 1], color="0.4", s=4)
 
 
+def _obstacle_frames(obstacles, steps: int):
+    """Obstacle nodes by frame: (T, M, d) positions as given, or static (M, d) nodes for every frame."""
+    if obstacles is None:
+        return None
+    nodes = np.asarray(obstacles[0])
+    if nodes.ndim == 2:
+        return np.broadcast_to(nodes, (steps, *nodes.shape))
+    if nodes.ndim != 3 or len(nodes) < steps:
+        raise ValueError(f"obstacle nodes of shape {nodes.shape}: give (M, d) static nodes or (T, M, d) positions "
+                         f"for each of the {steps} frames drawn")
+    return nodes
+
+
 def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarray | None = None,
                 obstacles: tuple[np.ndarray, np.ndarray] | None = None, frame_dt: float = 1.0,
                 fps: int = 10, max_frames: int = 80, colour: tuple[np.ndarray, str] | None = None) -> Path:
@@ -168,7 +236,9 @@ def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarra
     position error (right); without ``truth`` the prediction alone coloured by speed.
 
     cells: (C, d+1) body cells; predicted / truth: (T, N, d) body-node positions; obstacles:
-    (nodes, facets) drawn in grey. 3D bodies are drawn as point clouds (x-y projection).
+    (nodes, facets) drawn in grey, nodes (M, d) where they stand still or (T, M, d) where they
+    sit in each frame (moving obstacles; at least as many frames as are drawn). 3D bodies are
+    drawn as point clouds (x-y projection).
     colour: (values (T, N), label) to colour the prediction by instead (e.g. a field's error on
     a fixed mesh).
     """
@@ -176,12 +246,13 @@ def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarra
     from matplotlib.animation import FuncAnimation, PillowWriter
 
     steps = min(len(predicted), len(truth)) if truth is not None else len(predicted)
+    obstacle_frames = _obstacle_frames(obstacles, steps)
     frames = np.unique(np.linspace(0, steps - 1, min(steps, max_frames)).round().astype(int))
     panels = 2 if truth is not None else 1
     fig, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 4.2), squeeze=False)
     axes = axes[0]
     lo, hi = _limits(predicted[:steps], truth[:steps] if truth is not None else None,
-                     obstacles[0] if obstacles is not None else None)
+                     obstacle_frames[:steps] if obstacle_frames is not None else None)
     if colour is None:
         colour, label, vmax = _colouring(predicted, truth, steps, frame_dt)
     else:
@@ -198,8 +269,9 @@ def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarra
             ax.clear()
             ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), aspect="equal", xticks=[], yticks=[])
             if obstacles is not None and len(obstacles[0]):
+                nodes = obstacle_frames[frame]
                 for facet in obstacles[1]:
-                    ax.plot(*obstacles[0][np.append(facet, facet[0])][:, :2].T, color="0.6", lw=1)
+                    ax.plot(*nodes[np.append(facet, facet[0])][:, :2].T, color="0.6", lw=1)
             if not np.isfinite(x).all():
                 ax.set_title(f"{title}: not finite")
                 continue

@@ -1,6 +1,6 @@
 """Trajectory files: one HDF5 file per trajectory, versioned, written atomically, read with checks.
 
-Layout (format version 1)::
+Layout (format version 2)::
 
     /                    attrs: format_version, scene, config (JSON), params (JSON), frame_dt,
                                 solver_dt, substeps, n_particles, wall_time, kernel_rebuilds
@@ -8,15 +8,18 @@ Layout (format version 1)::
     /mesh/cells          (C, d+1) int64
     /mesh/node_type      (N,) int8       NodeType codes
     /mesh/body_id        (N,) int32
-    /obstacles/nodes     (M, d) float64  wall / container geometry (M may be 0)
+    /obstacles/nodes     (M, d) float64  wall / container geometry at frame 0 (M may be 0)
     /obstacles/facets    (F, d) int64    its segments (2D) or triangles (3D)
     /frames/positions    (T, N, d) float64
     /frames/velocities   (T, N, d) float64
     /frames/times        (T,) float64
     /frames/wall_time    (T,) float64    solver seconds spent reaching each frame (0 for frame 0)
+    /frames/obstacle_positions (T, M, d) float64  optional: the obstacle nodes at each frame, where
+                                         obstacles move (kinematic); absent: they stay at /obstacles/nodes
     /diagnostics/<name>  (T, ...)        per-frame solver diagnostics
     /fields/<name>       (...)           optional: a converted source dataset's own fields, exactly
 
+Version 1 is the same layout without ``/frames/obstacle_positions``; the reader reads both.
 Files are written under a temporary name in the target folder and renamed when complete, so a
 crash never leaves a partial file under the final name. Object timestamps are off, so the same
 trajectory gives the same bytes apart from the timing fields (wall times).
@@ -35,7 +38,8 @@ from datagen.trajectory import NodeType, Trajectory
 
 __all__ = ["FORMAT_VERSION", "DatasetError", "save", "load", "is_complete", "content_digest"]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)  # version 1: no /frames/obstacle_positions (static obstacles only)
 TIMING_FIELDS = ("wall_time", "frames/wall_time")
 
 
@@ -63,6 +67,7 @@ def save(path, trajectory) -> Path:
     obstacle_nodes = np.zeros((0, d)) if t.obstacle_nodes is None else np.asarray(t.obstacle_nodes, float)
     obstacle_facets = np.zeros((0, d), np.int64) if t.obstacle_facets is None else np.asarray(t.obstacle_facets)
     frame_wall = np.zeros(len(t.times)) if t.frame_wall_times is None else np.asarray(t.frame_wall_times, float)
+    moving = None if t.obstacle_positions is None else _obstacle_positions(t, obstacle_nodes)
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w", track_order=True) as f:
             attrs = {
@@ -85,6 +90,8 @@ def save(path, trajectory) -> Path:
             for name, array in (("positions", t.positions), ("velocities", t.velocities), ("times", t.times),
                                 ("wall_time", frame_wall)):
                 _put(frames, name, array)
+            if moving is not None:
+                _put(frames, "obstacle_positions", moving)
             diagnostics = f.create_group("diagnostics", track_order=True)
             for name, array in sorted(t.diagnostics.items()):
                 array = np.asarray(array)
@@ -96,8 +103,18 @@ def save(path, trajectory) -> Path:
     return path
 
 
+def _obstacle_positions(t, obstacle_nodes: np.ndarray) -> np.ndarray:
+    """The trajectory's (T, M, d) float64 obstacle positions, checked against its frames and obstacle nodes."""
+    moving = np.asarray(t.obstacle_positions, np.float64)
+    expected = (len(t.times), *obstacle_nodes.shape)
+    if moving.shape != expected:
+        raise ValueError(f"Trajectory.obstacle_positions has shape {moving.shape}, expected {expected} "
+                         "(one row of obstacle_nodes per frame); give obstacle_nodes with the moving obstacles")
+    return moving
+
+
 def is_complete(path) -> bool:
-    """True when ``path`` is a readable trajectory file of the current format."""
+    """True when ``path`` is a trajectory file this reader reads (format version 1 or 2)."""
     try:
         load(path)
     except DatasetError:
@@ -136,9 +153,9 @@ _REQUIRED = {
 
 def _checked_arrays(f, path: Path) -> dict:
     version = f.attrs.get("format_version")
-    if version != FORMAT_VERSION:
-        raise DatasetError(f"trajectory file {path} has format version {version}, this reader reads "
-                           f"{FORMAT_VERSION}; regenerate it with python -m datagen")
+    if version not in READABLE_VERSIONS:
+        raise DatasetError(f"trajectory file {path} has format version {version}, this reader reads versions "
+                           f"{', '.join(map(str, READABLE_VERSIONS))}; regenerate it with python -m datagen")
     arrays = {}
     for name, ndim in _REQUIRED.items():
         if name not in f:
@@ -157,8 +174,24 @@ def _checked_arrays(f, path: Path) -> dict:
             raise DatasetError(f"trajectory file {path}: '{name}' has shape {arrays[name].shape}, expected ({n},)")
     if arrays["frames/wall_time"].shape != (t,):
         raise DatasetError(f"trajectory file {path}: 'frames/wall_time' must have one entry per frame ({t})")
+    if "frames/obstacle_positions" in f:
+        arrays["frames/obstacle_positions"] = _moving_obstacles(f, arrays, int(version), path)
     _check_values(arrays, path)
     return arrays
+
+
+def _moving_obstacles(f, arrays: dict, version: int, path: Path) -> np.ndarray:
+    """The (T, M, d) obstacle positions of a version 2 file, checked against its frames and obstacle nodes."""
+    moving = f["frames/obstacle_positions"][()]
+    expected = (len(arrays["frames/times"]), *arrays["obstacles/nodes"].shape)
+    if version < 2:
+        raise DatasetError(f"trajectory file {path} holds 'frames/obstacle_positions' but says format version "
+                           f"{version}, which has none; it is damaged: regenerate it with python -m datagen")
+    if moving.shape != expected:
+        raise DatasetError(f"trajectory file {path}: 'frames/obstacle_positions' has shape {moving.shape}, expected "
+                           f"{expected} (one row of 'obstacles/nodes' per frame of 'frames/times'); regenerate it "
+                           "with python -m datagen")
+    return moving
 
 
 def _check_values(arrays: dict, path: Path) -> None:
@@ -174,7 +207,9 @@ def _check_values(arrays: dict, path: Path) -> None:
         k = int(backwards[0]) + 1
         raise DatasetError(f"trajectory file {path}: 'frames/times' must increase strictly, but frame {k} is at "
                            f"t = {times[k]:.6g} after t = {times[k - 1]:.6g}; regenerate it or fix its times")
-    for name in ("frames/positions", "frames/velocities"):
+    for name in ("frames/positions", "frames/velocities", "frames/obstacle_positions"):
+        if name not in arrays:
+            continue
         finite = np.isfinite(arrays[name]).all(axis=(1, 2))
         if not finite.all():
             frame = int(np.flatnonzero(~finite)[0])
@@ -226,5 +261,6 @@ def load(path):
         n_particles=int(attrs["n_particles"]), frame_wall_times=arrays["frames/wall_time"],
         node_type=arrays["mesh/node_type"].astype(np.int64), body_id=arrays["mesh/body_id"].astype(np.int64),
         obstacle_nodes=arrays["obstacles/nodes"], obstacle_facets=arrays["obstacles/facets"],
-        kernel_rebuilds=int(attrs["kernel_rebuilds"]), fields=fields,
+        obstacle_positions=arrays.get("frames/obstacle_positions"), kernel_rebuilds=int(attrs["kernel_rebuilds"]),
+        fields=fields,
     )

@@ -1,5 +1,8 @@
 """``metadata.json`` of a dataset folder: dim, frame dt, counts, bounds, node counts, feature statistics.
 
+Bounds hold every body position of every frame and the obstacle nodes (where obstacles move,
+their positions at every frame).
+
 Statistics of velocities and of per-frame velocity changes are per component (mean, std)
 over every node of every frame of the train split (all splits when there is no train split).
 Written atomically (temporary name, then rename).
@@ -54,7 +57,8 @@ def dataset_metadata(root, dconfig: dict) -> dict:
             nodes[split].append(int(t.mesh.n_nodes))
             dims.add(int(t.mesh.dim))
             frame_dts.add(round(float(np.diff(t.times).mean()), 12))
-            points = np.concatenate([t.positions.reshape(-1, t.mesh.dim), t.obstacle_nodes.reshape(-1, t.mesh.dim)])
+            obstacles = t.obstacle_nodes if t.obstacle_positions is None else t.obstacle_positions
+            points = np.concatenate([t.positions.reshape(-1, t.mesh.dim), obstacles.reshape(-1, t.mesh.dim)])
             lower = points.min(0) if lower is None else np.minimum(lower, points.min(0))
             upper = points.max(0) if upper is None else np.maximum(upper, points.max(0))
             if stats_split in (None, split):

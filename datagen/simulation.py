@@ -280,6 +280,7 @@ def build_solver_model(scene: Scene, solver: dict) -> tuple[Model, State]:
         conditions=tuple(conditions), gravity=torch.as_tensor(gravity, dtype=dtype, device=device),
         node_positions=nodes, h_cfl=float(h_cfl), reference=solver["reference"], epsilon=float(solver["epsilon"]),
         fraction=float(solver["fraction"]), contact_margin=solver["contact_margin"], grips=grips,
+        colliders=tuple(getattr(scene, "colliders", None) or ()),
         damping=float(getattr(scene, "damping", 0.0)), fbar=solver["fbar"], **reference,
     )
     state = State.at_rest_shape(scene.x, scene.v, scene.volume, scene.density(), device=device, dtype=dtype)
@@ -366,7 +367,7 @@ def run(sim: Simulation) -> Trajectory:
         substeps=sim.substeps, n_particles=len(sim.scene.x),
         step_diagnostics=_stack(per_step) if per_step else None, frame_wall_times=np.array(frame_wall),
         node_type=sim.scene.node_type, body_id=sim.scene.body_id, obstacle_nodes=sim.scene.obstacle_nodes,
-        obstacle_facets=sim.scene.obstacle_facets,
+        obstacle_facets=sim.scene.obstacle_facets, obstacle_positions=sim.scene.obstacle_positions(times),
         kernel_rebuilds=_rebuild_counts(sim, state, sim.substeps * frames)[0],
     )
 

@@ -38,7 +38,10 @@ class Trajectory:
     frame_wall_times: (T,) solver seconds spent reaching each frame (0 for frame 0).
     node_type: (N,) NodeType codes of the tracked points (None: all free).
     body_id: (N,) body of each tracked point (None: one body). obstacle_nodes (M, d) and
-    obstacle_facets (F, d): wall/container geometry a model can see (None: none).
+    obstacle_facets (F, d): wall/container geometry a model can see (None: none); obstacle_nodes
+    are where it is at frame 0. obstacle_positions: (T, M, d) where the obstacle nodes are at
+    each frame when obstacles move (kinematic, prescribed motion; None: static, they stay at
+    obstacle_nodes).
     fields: name -> array of a converted source dataset's own fields, kept exactly as the source
     holds them (e.g. DeepMind's velocity, pressure, cells; None for the solver's runs).
     kernel_rebuilds: how many times kernels were computed: one per step in eulerian mode, one
@@ -62,5 +65,6 @@ class Trajectory:
     body_id: np.ndarray | None = None
     obstacle_nodes: np.ndarray | None = None
     obstacle_facets: np.ndarray | None = None
+    obstacle_positions: np.ndarray | None = None
     kernel_rebuilds: int | None = None
     fields: dict | None = None

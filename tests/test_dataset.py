@@ -73,7 +73,8 @@ def test_schema_errors(tmp_path, trajectory):
     path = save(tmp_path / "t.h5", trajectory)
     with h5py.File(path, "r+") as f:
         f.attrs["format_version"] = FORMAT_VERSION + 1
-    with pytest.raises(DatasetError, match=f"has format version {FORMAT_VERSION + 1}, this reader reads {FORMAT_VERSION}"):
+    with pytest.raises(DatasetError, match=f"has format version {FORMAT_VERSION + 1}, this reader reads versions 1, "
+                       f"{FORMAT_VERSION}"):
         load(path)
     path = save(tmp_path / "t.h5", trajectory)
     with h5py.File(path, "r+") as f:

@@ -15,9 +15,10 @@ from PIL import Image
 
 from bsms.data import NodeType, Scenario
 from bsms.evaluate import evaluate
+from bsms.pareto import dominates, row_point
 from bsms.rollout import rollout
 from bsms.run import load_config, load_model
-from bsms.solver_runs import SOLVER_SETTINGS, interpolate_to
+from bsms.solver_runs import SOLVER_SETTINGS, STABILITY_FACTORS, interpolate_to
 from datagen.dataset import load
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,6 +62,7 @@ TABLE = {
     "± std": "rmse_all_std", "RMSE all / body size": "rel_all", "unstable rollouts": "unstable",
     "first unstable step": "first_unstable_step", "s per frame": "seconds_per_step",
     "s per simulated s": "seconds_per_sim_second", "speed-up vs solver": "speedup", "peak memory (MB)": "peak_memory_mb",
+    "dominated by": "dominated_by",
 }
 
 
@@ -83,6 +85,8 @@ def test_report_table_is_metrics_json(quickstart_run):
                 assert cell == "-", (row["label"], title)
             elif isinstance(value, str):
                 assert cell == value
+            elif isinstance(value, list):  # labels of the rows that dominate this one
+                assert cell == ("; ".join(value) or "none"), (row["label"], title)
             else:  # three significant digits
                 assert float(cell) == pytest.approx(value, rel=5e-3, abs=0), (row["label"], title)
     with open(run / "evaluation" / "speed_accuracy.csv", newline="") as fh:
@@ -90,20 +94,24 @@ def test_report_table_is_metrics_json(quickstart_run):
     assert list(csv_rows[0]) == list(TABLE.values())
     for csv_row, row in zip(csv_rows, details["rows"], strict=True):
         assert float(csv_row["rmse_all"]) == row["rmse_all"] and csv_row["label"] == row["label"]
+        assert csv_row["dominated_by"] == ("; ".join(row["dominated_by"]) or "none")
 
 
 def test_metrics_are_what_they_claim(quickstart_run):
     run, stdout, details = quickstart_run
     rows = {row["label"]: row for row in details["rows"]}
-    assert set(rows) == {"quickstart", *SOLVER_SETTINGS.values()}
+    settings = {row["setting"]: row for row in details["rows"] if row["kind"] == "solver"}
+    assert set(settings) == set(SOLVER_SETTINGS) and set(rows) == {"quickstart", *(r["label"] for r in settings.values())}
+    assert details["threads"] == 1 and details["data_solver_threads"] == [1], "every point timed on one thread"
     truth = rows[GROUND_TRUTH]
     assert truth["rmse_all"] == 0.0 and truth["max_difference_from_stored"] == 0.0, \
         "the solver re-run at the data's settings must reproduce the stored trajectory bit for bit"
     for label, row in rows.items():
         assert row["speedup"] == pytest.approx(truth["seconds_per_sim_second"] / row["seconds_per_sim_second"],
                                                rel=1e-15), label
-        if label not in ("quickstart", GROUND_TRUTH):  # every cheaper setting changes the result
+        if label not in ("quickstart", GROUND_TRUTH, settings["adaptive"]["label"]):  # cheaper settings change it
             assert 0 < row["rmse_all"] < math.inf, label
+    assert 0 <= settings["adaptive"]["rmse_all"] < 1e-6, "the adaptive reference configuration changes little here"
     (learned,) = details["learned"]["quickstart"]
     curve = np.array(learned["error_curve"])
     assert len(curve) == 6 and learned["steps"] == 6
@@ -122,6 +130,33 @@ def test_metrics_are_what_they_claim(quickstart_run):
     truth_positions = load(details["trajectories"][0]).positions
     np.testing.assert_allclose(point_data["error"], np.linalg.norm(predicted[6] - truth_positions[6], axis=-1),
                                rtol=1e-6, atol=0)
+
+
+def test_stability_limit_and_pareto_front_of_a_real_evaluation(quickstart_run):
+    run, _, details = quickstart_run
+    rows = details["rows"]
+    limit = next(row for row in rows if row.get("setting") == "stability_limit")
+    (run_metrics,) = details["solver"][limit["label"]]
+    tries = run_metrics["search"]
+    assert 1 <= len(tries) <= len(STABILITY_FACTORS) and all(t["stable"] for t in tries[:-1])
+    stable = [t for t in tries if t["stable"]]
+    assert run_metrics["dt_factor"] == (stable[-1]["dt_factor"] if stable else 1.0) == limit["dt_factor"]
+    assert limit["label"] == f"{SOLVER_SETTINGS['stability_limit']} ({limit['dt_factor']:.3g}x)"
+    assert limit["unstable"] == 0 and run_metrics["unstable_step"] is None, "the point is the last stable run"
+    large = next(row for row in rows if row.get("setting") == "large_step")
+    assert large["dt_factor"] == 2.0 and tries[0]["dt_factor"] == 2.0
+    truth = next(row for row in rows if row["label"] == GROUND_TRUTH)
+    points = {row["label"]: row_point(row, GROUND_TRUTH) for row in rows}
+    for row in rows:  # the rule, pair by pair, on the numbers metrics.json holds
+        assert row["dominated_by"] == [other["label"] for other in rows if other is not row
+                                       and dominates(points[other["label"]], points[row["label"]])], row["label"]
+        assert row["pareto_front"] == (not row["dominated_by"] and math.isfinite(points[row["label"]][1]))
+    assert truth["pareto_front"] and truth["dominated_by"] == []
+    report = (run / "report.md").read_text()
+    front = [row["label"] for row in sorted(rows, key=lambda r: points[r["label"]]) if row["pareto_front"]]
+    assert f"fastest first: {'; '.join(front)}." in report
+    assert "- quickstart: " in report.split("## Error against time")[0]
+    assert "on 1 CPU thread(s), learned models and solver alike" in report
 
 
 def test_report_links_every_picture(quickstart_run):
@@ -163,7 +198,11 @@ def test_unknown_solver_setting_names_the_key():
     with pytest.raises(ConfigError) as info:
         load_config({"name": "x", "dataset": {"config": "d.yaml"}, "evaluate": {"solver": ["coarse", "large_step"]}})
     assert str(info.value) == ("unknown config key 'evaluate.solver.coarse'; 'evaluate.solver' accepts: "
-                               "coarse_mesh, fewer_particles, ground_truth, large_step")
+                               "adaptive, adaptive_coarse_mesh, coarse_mesh, coarse_mesh_1.5, fewer_particles, "
+                               "ground_truth, large_step, stability_limit")
+    old = load_config({"name": "x", "dataset": {"config": "d.yaml"},
+                       "evaluate": {"solver": ["coarse_mesh", "fewer_particles", "large_step"]}})
+    assert old.evaluate.solver == ["coarse_mesh", "fewer_particles", "large_step"], "old configs keep working"
     former = load_config({"name": "x", "dataset": {"config": "d.yaml"}, "evaluate": {"solver": ["reference"]}})
     assert former.evaluate.solver == ["ground_truth"], "runs saved before the rename still load"
 

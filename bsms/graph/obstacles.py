@@ -2,40 +2,87 @@
 
 Walls and containers are stored as facets (segments in 2D, triangles in 3D). They enter the
 graph as nodes of their own, subdivided so that a body node near a wall always finds wall
-nodes within the contact radius (:func:`subdivide_facets`). A frame's graph then holds only
-the obstacle nodes within reach of a body (:class:`ObstacleReach`): a wall nobody is near
-costs nothing. Nodes are numbered body first, obstacles after, as in a scenario.
+nodes within the contact radius (:func:`subdivide_obstacles`). Moving obstacles (kinematic,
+prescribed motion) are stored as the positions of their stored nodes per frame; the subdivided
+nodes follow them through the linear map of the subdivision (:meth:`Subdivision.moved`). A
+frame's graph then holds only the obstacle nodes within reach of a body, wherever the obstacles
+are in that frame (:class:`ObstacleReach`): a wall nobody is near costs nothing. Nodes are
+numbered body first, obstacles after, as in a scenario.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from scipy import sparse
 from scipy.spatial import cKDTree
 
 from bsms.graph.contact import contact_edges
 
-__all__ = ["subdivide_facets", "facet_edges", "ObstacleReach"]
+__all__ = ["Subdivision", "subdivide_obstacles", "subdivide_facets", "facet_edges", "ObstacleReach"]
 
 
-def subdivide_facets(nodes: np.ndarray, facets: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
-    """Obstacle geometry with no facet edge longer than ``spacing`` (2D: original nodes first).
+@dataclass(frozen=True)
+class Subdivision:
+    """Obstacle geometry subdivided for the graph, and how its nodes follow the stored ones.
+
+    stored: (M, d) the stored obstacle nodes (at rest / frame 0); nodes (M_sub, d), facets
+    (F_sub, k): the subdivided geometry; weights: (M_sub, M) sparse map from stored to
+    subdivided nodes -- each subdivided node is a barycentric combination of the corners of
+    the facet it lies on (rows sum to 1), so ``nodes`` = weights @ ``stored`` up to round-off.
+    """
+
+    stored: np.ndarray
+    nodes: np.ndarray
+    facets: np.ndarray
+    weights: sparse.csr_matrix
+
+    def moved(self, positions: np.ndarray) -> np.ndarray:
+        """(..., M_sub, d) subdivided nodes of stored obstacle nodes at ``positions`` (..., M, d):
+        ``nodes + weights @ (positions - stored)`` -- ``nodes`` bit for bit where the stored nodes
+        are at rest, and exact (to round-off) for any motion affine on each facet (rigid motion)."""
+        positions = np.asarray(positions, np.float64)
+        if positions.shape[-2:] != self.stored.shape:
+            raise ValueError(f"obstacle positions have shape {positions.shape}; the obstacle geometry has "
+                             f"{len(self.stored)} stored nodes in {self.stored.shape[1]}D: give (..., "
+                             f"{len(self.stored)}, {self.stored.shape[1]}) positions of the stored obstacle nodes")
+        shift = np.moveaxis(positions - self.stored, -2, 0)  # (M, ..., d)
+        moved = (self.weights @ shift.reshape(len(self.stored), -1)).reshape((len(self.nodes), *shift.shape[1:]))
+        return self.nodes + np.moveaxis(moved, 0, -2)
+
+
+def subdivide_obstacles(nodes: np.ndarray, facets: np.ndarray, spacing: float) -> Subdivision:
+    """Obstacle geometry with no facet edge longer than ``spacing`` (2D: original nodes first;
+    ``spacing`` <= 0 keeps it as stored), with the map from stored to subdivided nodes.
 
     nodes (M, d); facets (F, k) with k = 2 (segments) or 3 (triangles). Each facet is split
     uniformly into n pieces per edge (segments: n per segment; triangles: one n for all, so
     shared edges get the same points); points shared by facets are merged.
     """
+    nodes = np.asarray(nodes, np.float64)
     k = facets.shape[1]
-    if len(facets) == 0 or k not in (2, 3):
-        return nodes, facets
+    kept = Subdivision(nodes, nodes, facets, sparse.identity(len(nodes), format="csr"))
+    if len(facets) == 0 or k not in (2, 3) or spacing <= 0:
+        return kept
     corners = nodes[facets]  # (F, k, d)
     lengths = np.linalg.norm(corners[:, [1, 2, 0][:k]] - corners, axis=-1) if k == 3 else \
         np.linalg.norm(corners[:, 1] - corners[:, 0], axis=-1)[:, None]
     if lengths.max() <= spacing:
-        return nodes, facets
+        return kept
     if k == 2:
         return _subdivide_segments(nodes, facets, np.maximum(1, np.ceil(lengths[:, 0] / spacing).astype(int)))
-    n = int(np.ceil(lengths.max() / spacing))
-    # barycentric lattice (i, j) with i + j <= n, and its small triangles
+    return _subdivide_triangles(nodes, facets, int(np.ceil(lengths.max() / spacing)))
+
+
+def subdivide_facets(nodes: np.ndarray, facets: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """(nodes, facets) of :func:`subdivide_obstacles`: the subdivided geometry alone."""
+    subdivision = subdivide_obstacles(nodes, facets, spacing)
+    return subdivision.nodes, subdivision.facets
+
+
+def _subdivide_triangles(nodes: np.ndarray, triangles: np.ndarray, n: int) -> Subdivision:
+    """Every triangle split into n^2 by the barycentric lattice (i, j), i + j <= n, points merged."""
     lattice = np.array([(i, j) for i in range(n + 1) for j in range(n + 1 - i)])
     index = {tuple(p): q for q, p in enumerate(lattice)}
     small = []
@@ -46,24 +93,36 @@ def subdivide_facets(nodes: np.ndarray, facets: np.ndarray, spacing: float) -> t
                 small.append((index[i + 1, j], index[i + 1, j + 1], index[i, j + 1]))
     small = np.array(small)
     weights = np.column_stack([n - lattice.sum(1), lattice[:, 0], lattice[:, 1]]) / n  # (L, 3)
-    points = np.einsum("lc,fcd->fld", weights, corners).reshape(-1, nodes.shape[1])
-    triangles = (small[None] + len(lattice) * np.arange(len(facets))[:, None, None]).reshape(-1, 3)
+    points = np.einsum("lc,fcd->fld", weights, nodes[triangles]).reshape(-1, nodes.shape[1])
+    fine = (small[None] + len(lattice) * np.arange(len(triangles))[:, None, None]).reshape(-1, 3)
     scale = max(float(np.abs(points).max()), 1.0)
     _, first, inverse = np.unique(np.round(points / (1e-9 * scale)).astype(np.int64), axis=0, return_index=True,
                                   return_inverse=True)
-    return points[first], inverse.reshape(-1)[triangles]
+    facet, point = np.divmod(first, len(lattice))  # the facet and lattice point each kept point came from
+    rows = np.repeat(np.arange(len(first)), 3)
+    matrix = sparse.csr_matrix((weights[point].reshape(-1), (rows, triangles[facet].reshape(-1))),
+                               shape=(len(first), len(nodes)))
+    return Subdivision(nodes, points[first], inverse.reshape(-1)[fine], matrix)
 
 
-def _subdivide_segments(nodes: np.ndarray, segments: np.ndarray, pieces: np.ndarray):
+def _subdivide_segments(nodes: np.ndarray, segments: np.ndarray, pieces: np.ndarray) -> Subdivision:
+    """Every segment split into its number of ``pieces``; the stored nodes first, as they are."""
     points, out = [nodes], []
+    rows, cols, values = [np.arange(len(nodes))], [np.arange(len(nodes))], [np.ones(len(nodes))]
     count = len(nodes)
     for (a, b), n in zip(segments, pieces, strict=True):
-        inner = nodes[a] + np.outer(np.arange(1, n) / n, nodes[b] - nodes[a])
+        fraction = np.arange(1, n) / n
+        inner = nodes[a] + np.outer(fraction, nodes[b] - nodes[a])
         ids = np.concatenate([[a], count + np.arange(n - 1), [b]])
         points.append(inner)
+        rows += [ids[1:-1]] * 2
+        cols += [np.full(n - 1, a), np.full(n - 1, b)]
+        values += [1.0 - fraction, fraction]
         count += n - 1
         out.append(np.stack([ids[:-1], ids[1:]], axis=1))
-    return np.concatenate(points), np.concatenate(out)
+    matrix = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
+                               shape=(count, len(nodes)))
+    return Subdivision(nodes, np.concatenate(points), np.concatenate(out), matrix)
 
 
 def facet_edges(facets: np.ndarray) -> np.ndarray:

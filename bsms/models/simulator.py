@@ -170,7 +170,11 @@ class LearnedSimulator(nn.Module):
         """
         if accumulate:
             self.output_normalizer.accumulate(graph.target[graph.loss_mask])
-        prediction = self(graph, accumulate, precision)
+        return self.prediction_loss(self(graph, accumulate, precision), graph, reduction)
+
+    def prediction_loss(self, prediction: Tensor, graph: LevelGraph, reduction: str = "mean") -> Tensor:
+        """The loss of :meth:`loss` of a ``prediction`` (N, node_out) already made of ``graph``
+        (multi-step training, :mod:`bsms.unroll`, goes on from the prediction it scores)."""
         error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)[graph.loss_mask]
         return error.sum() if reduction == "sum" else error.mean()
 

@@ -27,9 +27,11 @@ on the nodes at or beyond the faces of the grid's box. Kinds:
 Clamps (Dirichlet sets) hold every node inside a region at rest, e.g. a beam's fixed end.
 
 Conditions apply in the order of the walls, then the clamps, then every mirror ghost (so the
-ghosts see the final velocities of the nodes they mirror). The mirrors also act before the
-update: :func:`fold_mirrors` on the P2G sums, :func:`apply_mirrors` on the velocities before
-the update (the FLIP increment of a ghost is then the mirror of its sources' increment).
+ghosts see the final velocities of the nodes they mirror); moving rigid obstacles
+(:mod:`~datagen.mpm.colliders`) act after the clamps and before the mirror ghosts. The mirrors
+also act before the update: :func:`fold_mirrors` on the P2G sums, :func:`apply_mirrors` on the
+velocities before the update (the FLIP increment of a ghost is then the mirror of its sources'
+increment).
 """
 
 from __future__ import annotations

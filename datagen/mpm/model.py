@@ -42,7 +42,10 @@ class Model:
     applied to the moved node positions in the total/adaptive modes (None: apply ``conditions``
     by node index there too, right only while no node near a wall moves); pinned: index
     conditions that hold in every mode (clamps). grips: :class:`Grip` particle sets moved as
-    prescribed. damping: mass-proportional damping rate (1/s) of the nodal velocities.
+    prescribed. colliders: moving rigid obstacles (:class:`~datagen.mpm.colliders.Collider`),
+    applied after the walls and clamps, at the background nodes' positions in eulerian mode and at
+    their moved positions otherwise. damping: mass-proportional damping rate (1/s) of the nodal
+    velocities.
     fbar: the F-bar treatment against volumetric locking (:mod:`~datagen.mpm.inelastic`): each
     step's volume change is replaced by its average over the particles' nodal patches.
     """
@@ -62,6 +65,7 @@ class Model:
     wall_planes: tuple | None = None
     pinned: tuple = ()
     grips: tuple = ()
+    colliders: tuple = ()
     damping: float = 0.0
     fbar: bool = False
 
@@ -81,6 +85,11 @@ class Model:
             raise ValueError("the bspline kernel needs a Grid background and the mesh kernels MeshTables")
         if self.wall_planes:
             object.__setattr__(self, "_walls", _wall_table(self.wall_planes))
+        object.__setattr__(self, "colliders", tuple(self.colliders))
+        for k, collider in enumerate(self.colliders):
+            if collider.dim != self.dim:
+                raise ValueError(f"collider {k} ({collider.shape}) moves in {collider.dim}D, but the background "
+                                 f"nodes are {self.dim}D")
 
     @property
     def n_nodes(self) -> int:

@@ -1,5 +1,5 @@
 """The nodal update of every engine (UMLS Algorithm 1 lines 4-6): P2G sums -> nodal velocities
-before and after the update, with gravity, damping, walls, mirror ghosts and grips.
+before and after the update, with gravity, damping, walls, colliders, mirror ghosts and grips.
 
 The slot path (:mod:`~datagen.mpm.transfers`) and the fixed operators
 (:mod:`~datagen.mpm.operators`) both hand their P2G sums [m, p, f_int] to :func:`nodal_update`,
@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from .boundary import apply_conditions, apply_mirrors, fold_mirrors
+from .boundary import Mirror, apply_conditions, apply_mirrors, fold_mirrors
 from .kernels import KernelResult
 from .model import Grip, Model
 from .state import Reference, State
@@ -39,7 +39,8 @@ def nodal_update(model: Model, state: State, k: KernelResult, sums: torch.Tensor
     first folded onto the nodes they mirror (:func:`~datagen.mpm.boundary.fold_mirrors`), and the
     ghosts' velocity before the update is mirrored as well as after it, so that FLIP's increment
     v_new - v is the odd extension of the physical nodes' increment. Then gravity, damping, the
-    boundary conditions (:func:`constrain`) and the held grips. k: the kernel of the P2G sums.
+    boundary conditions and colliders (:func:`constrain`, on the nodes that carry mass) and the
+    held grips. k: the kernel of the P2G sums; dt: the step (s).
     """
     d = model.dim
     by_index = index_conditions(model, state)
@@ -52,7 +53,7 @@ def nodal_update(model: Model, state: State, k: KernelResult, sums: torch.Tensor
     v_new = torch.where(active, v + dt * accel, 0.0)  # UMLS eq. 13
     if model.damping:
         v_new = v_new / (1.0 + model.damping * dt)
-    v_new = _hold_grips(model, state, k, constrain(model, state, v_new))
+    v_new = _hold_grips(model, state, k, constrain(model, state, v_new, dt, active))
     return Nodal(mass=torch.where(active, mass, 0.0), v=v, v_new=v_new)
 
 
@@ -62,9 +63,16 @@ def index_conditions(model: Model, state: State) -> tuple:
     return model.conditions if state.reference is None or model.wall_planes is None else model.pinned
 
 
-def constrain(model: Model, state: State, v: torch.Tensor) -> torch.Tensor:
+def constrain(model: Model, state: State, v: torch.Tensor, dt: float,
+              active: torch.Tensor | None = None) -> torch.Tensor:
     """Boundary conditions on nodal velocities v (d, N), in place: by node index in eulerian
-    mode; on the moved node positions (wall planes) plus the pinned nodes otherwise."""
+    mode; on the moved node positions (wall planes) plus the pinned nodes otherwise.
+
+    With colliders (:mod:`~datagen.mpm.colliders`) the order is: walls and clamps, then the
+    colliders (at state.time, moving over [t, t + dt]) on the ``active`` nodes ((N,) bool, the
+    nodes that carry mass; None: all), then the mirror ghosts, which copy the final velocities
+    of the nodes they mirror. dt: the step (s).
+    """
     ref = state.reference
     by_plane = ref is not None and bool(model.wall_planes)
     if by_plane and ref.drift >= ref.wall_gap:  # only nodes in the kernel's support carry velocity
@@ -72,7 +80,29 @@ def constrain(model: Model, state: State, v: torch.Tensor) -> torch.Tensor:
         for j, hit in enumerate(members.any(1).tolist()):
             if hit:
                 model.wall_planes[j].apply_to(v, nodes[members[j]])
-    return apply_conditions(v, index_conditions(model, state))
+    conditions = index_conditions(model, state)
+    if not model.colliders:
+        return apply_conditions(v, conditions)
+    v = apply_conditions(v, [c for c in conditions if not isinstance(c, Mirror)])
+    v = _apply_colliders(model, state, v, dt, active)
+    return apply_conditions(v, [c for c in conditions if isinstance(c, Mirror)])
+
+
+def _apply_colliders(model: Model, state: State, v: torch.Tensor, dt: float,
+                     active: torch.Tensor | None) -> torch.Tensor:
+    """Every collider's contact on the nodal velocities v (d, N), in place: at the background
+    nodes' positions in eulerian mode, at their moved positions (state.reference.nodes) otherwise."""
+    q = model.node_positions.T if state.reference is None else state.reference.nodes  # (d, N)
+    if active is None:
+        for collider in model.colliders:
+            collider.apply(v, q, state.time, dt)
+        return v
+    ids = active.nonzero()[:, 0]
+    sub, q = v[:, ids], q[:, ids]
+    for collider in model.colliders:
+        collider.apply(sub, q, state.time, dt)
+    v[:, ids] = sub
+    return v
 
 
 def _wall_members(model: Model, ref: Reference) -> tuple[torch.Tensor, torch.Tensor]:

@@ -22,8 +22,9 @@ through one another. At each update the active nodes are split into clusters (co
 shared particles) and the gap between every pair of clusters is measured. Between updates
 D_c = max |q_i - q_i^s| over the nodes of cluster c bounds how far it moved; an update is
 forced when D_a + D_b >= gap_ab - contact_margin * h for some pair (h the background cell
-size). A single body in free rigid motion has one cluster and never triggers; walls need no
-trigger because they act on the moved node positions.
+size). A single body in free rigid motion has one cluster and never triggers; walls and
+colliders (:mod:`~datagen.mpm.colliders`) need no trigger because they act on the moved node
+positions.
 """
 
 from __future__ import annotations

@@ -112,7 +112,7 @@ def g2p_musl(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float
     momentum = fold_mirrors(momentum, index_conditions(model, state), [-1.0] * model.dim)  # as grid.mass was
     active = grid.mass > 0
     v_map = torch.where(active, momentum / torch.where(active, grid.mass, 1.0), 0.0)
-    v_map = constrain(model, state, v_map)
+    v_map = constrain(model, state, v_map, dt, active)
     return replace(new, **_deformed(model, state, k, gather(k, v_map), dt))
 
 

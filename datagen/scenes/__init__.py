@@ -12,6 +12,7 @@ from . import (
     droplet,
     expansion,
     glyphs,
+    press,
     rotating_plate,
     rotating_square,
     slope,
@@ -26,7 +27,7 @@ __all__ = ["SCENES", "get_scene", "ConfigError", "Scene"]
 SCENES = {
     module.NAME: module
     for module in (vibrating_bar, colliding_disks, cantilever, rotating_square, disks, wavy_channel, glyphs,
-                   rotating_plate, stretched_bar, droplet, balls, bodies, slope, expansion)
+                   rotating_plate, stretched_bar, droplet, balls, bodies, slope, expansion, press)
 }
 
 

@@ -34,6 +34,10 @@ class Scene:
     body_id: (N,) body of each vertex (None: one body); obstacle_nodes (M, d) and
     obstacle_facets (F, d): wall/container geometry a model can see (None: none).
     initial_F: (P, d, d) or (d, d) deformation gradient at t = 0 (None: the identity).
+    colliders: moving rigid obstacles (:class:`~datagen.mpm.colliders.Collider`) acting on the
+    background nodes; each one's surface is the last ``collider_nodes[k]`` obstacle nodes, moved
+    with it (:meth:`obstacle_positions`). damping: mass-proportional damping rate (1/s) of the
+    nodal velocities.
     frame_diagnostics: (simulation, state) -> name -> array, extra per-frame diagnostics
     (e.g. a slope's run-out); the simulation is a datagen.simulation.Simulation.
     """
@@ -56,10 +60,28 @@ class Scene:
     obstacle_facets: np.ndarray | None = None
     initial_F: np.ndarray | None = None
     frame_diagnostics: Callable | None = None
+    colliders: list = field(default_factory=list)
+    collider_nodes: list = field(default_factory=list)
+    damping: float = 0.0
 
     @property
     def dim(self) -> int:
         return self.x.shape[1]
+
+    def obstacle_positions(self, times) -> np.ndarray | None:
+        """(T, M, d) obstacle node positions at ``times`` (the colliders' surfaces moved along their
+        paths, the static walls where they are); None when no obstacle moves."""
+        if not self.colliders or self.obstacle_nodes is None:
+            return None
+        times = np.asarray(times, float).reshape(-1)
+        out = np.broadcast_to(self.obstacle_nodes, (len(times), *self.obstacle_nodes.shape)).copy()
+        end = len(self.obstacle_nodes)
+        for collider, count in reversed(list(zip(self.colliders, self.collider_nodes, strict=True))):
+            start = end - count
+            shift = np.stack([collider.path.position(t) - collider.path.points[0] for t in times])
+            out[:, start:end] += shift[:, None, :]
+            end = start
+        return out
 
     def density(self) -> np.ndarray:
         """(P,) rest density of every particle."""

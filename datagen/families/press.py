@@ -1,0 +1,97 @@
+"""Family ``press``: a stiff elastic body on a floor, pressed by a moving indenter and released.
+
+Bodies of engineering stiffness (E log-uniform in megapascals) shaped as letters: the train
+and valid splits draw from ``ranges.train_chars``; the test split from ``ranges.test_chars``
+or, with probability ``ranges.test_polygons``, a random star-shaped polygon -- shapes never
+seen in training. The indenter (disk, box or wedge, sized relative to the body) starts just
+above the body at a random offset and moves along a random line near the vertical at a few
+cm/s, then back (:mod:`datagen.scenes.press`).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..config import ConfigError
+from ..mesh import Mesh
+from ..scenes import press as press_scene
+from ..simulation import resolve_config
+from .base import check_ranges, choice, integer, log_midpoint, log_uniform, midpoint, uniform
+from .glyphs import _alphabet
+from .placement import _dataset_config, _mesh_entry
+
+NAME = "press"
+SCENE = "press"
+DIM, CONTACT, OBSTACLES, CLAMPED = 2, True, True, False
+RANGES = {
+    "train_chars": "ABCDEFHKLMNPRTVWXYZ", "test_chars": "GJQSU", "test_polygons": 0.5, "polygon_vertices": [5, 9],
+    "size": [0.1, 0.13], "E": [1e6, 2e7], "nu": [0.3, 0.45], "density": [1000.0, 1500.0],
+    "indenters": ["disk", "box", "wedge"], "indenter_scale": [0.12, 0.25], "indenter_aspect": [0.4, 1.0],
+    "indenter_offset": [-0.25, 0.25], "speed": [0.03, 0.06], "angle": [-20.0, 20.0], "gap": [0.001, 0.003],
+    "press_time": 0.2, "hold_time": 0.0,
+}
+
+
+def random_polygon(rng: np.random.Generator, vertices: int) -> list[list[float]]:
+    """A star-shaped polygon of ``vertices`` corners around the origin (radii 0.55-1, angles jittered)."""
+    base = np.sort(rng.uniform(-0.3, 0.3, vertices) + np.arange(vertices)) * (2 * math.pi / vertices)
+    radius = rng.uniform(0.55, 1.0, vertices)
+    return np.round(np.stack([radius * np.cos(base), radius * np.sin(base)], 1), 6).tolist()
+
+
+def _indenter(r: dict, rng: np.random.Generator, size: float) -> dict:
+    shape = choice(r, "indenters", rng)
+    if shape not in press_scene.INDENTER_SIZES:
+        raise ConfigError(f"ranges.indenters may hold {sorted(press_scene.INDENTER_SIZES)}, got {shape!r}")
+    half = uniform(r, "indenter_scale", rng) * size
+    aspect = uniform(r, "indenter_aspect", rng)
+    sizes = {"disk": [half], "box": [half, half * aspect], "wedge": [half, 2 * half * aspect]}[shape]
+    return {"indenter": shape, "indenter_size": [round(s, 6) for s in sizes]}
+
+
+def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
+    r = check_ranges(NAME, RANGES, ranges)
+    chars = _alphabet(r, split)
+    size = uniform(r, "size", rng)
+    body: dict = {"char": chars[int(rng.integers(len(chars)))]}
+    if split == "test" and rng.uniform() < float(r["test_polygons"]):
+        body = {"polygon": random_polygon(rng, integer(r, "polygon_vertices", rng, minimum=3))}
+    return {
+        **body, "size": size, "E": log_uniform(r, "E", rng), "nu": uniform(r, "nu", rng),
+        "density": uniform(r, "density", rng), **_indenter(r, rng, size),
+        "indenter_x": uniform(r, "indenter_offset", rng) * size, "speed": uniform(r, "speed", rng),
+        "angle": uniform(r, "angle", rng), "gap": uniform(r, "gap", rng),
+        "press_time": uniform(r, "press_time", rng), "hold_time": uniform(r, "hold_time", rng),
+    }
+
+
+def place(meshes, dconfig, overrides: dict | None = None) -> dict:
+    """A ``press`` config pressing one mesh (2D) like this family's bodies: mid-range size,
+    stiffness, density and speed, a disk indenter of mid-range size straight down over the
+    body's centre. ``overrides`` replace any press scene parameter (e.g. the indenter and its
+    path: ``indenter``, ``indenter_size``, ``indenter_x``, ``speed``, ``angle``, ``press_time``)."""
+    if isinstance(meshes, (str, Path, Mesh)) or not isinstance(meshes, (list, tuple)) or len(meshes) != 1:
+        raise ConfigError("family 'press' presses one body: give meshes as a list of exactly one Mesh or file path")
+    overrides = dict(overrides or {})
+    for key in overrides:
+        if key not in press_scene.DEFAULTS or key in ("char", "polygon", "mesh"):
+            known = ", ".join(k for k in sorted(press_scene.DEFAULTS) if k not in ("char", "polygon", "mesh"))
+            raise ConfigError(f"overrides.{key} is not a press scene parameter that can be overridden; known: {known}")
+    d = _dataset_config(dconfig, NAME)
+    entry, _ = _mesh_entry(meshes[0], 0, DIM, NAME)
+    r = check_ranges(NAME, RANGES, d["ranges"])
+    size = midpoint(r, "size")
+    params = {key: value for key, value in d["params"].items() if key in press_scene.DEFAULTS}
+    params.update(
+        mesh=entry, size=size, E=log_midpoint(r, "E"), nu=midpoint(r, "nu"), density=midpoint(r, "density"),
+        indenter="disk", indenter_size=[round(midpoint(r, "indenter_scale") * size, 6)], indenter_x=0.0,
+        speed=midpoint(r, "speed"), angle=0.0, gap=midpoint(r, "gap"), press_time=midpoint(r, "press_time"),
+        hold_time=midpoint(r, "hold_time"),
+    )
+    params.update(overrides)
+    config = {"scene": SCENE, "params": params, "solver": d["solver"], "output": d["output"], "seed": d["seed"]}
+    resolve_config(config)
+    return config

@@ -1,0 +1,151 @@
+"""An elastic body on a floor, pressed by a moving rigid indenter and released (2D).
+
+The body is a letter (``char``, meshed by ``datagen.shapes.glyph``), a polygon (``polygon``:
+its vertices) or any 2D mesh (``mesh``: a file path or an inline ``{nodes, cells}``), scaled so
+that its largest bounding-box extent is ``size`` and set on the floor of the box at its middle,
+``lift`` above it, meshed at spacing ``body_size`` (finer if it would get fewer than
+``min_nodes`` nodes: thin letters stay resolved). The material is stiff (megapascals): the explicit solver then needs
+hundreds of substeps per frame, while the motion is slow and smooth -- the setting where a
+learned simulator pays (DeepMind's DEFORMINGPLATE is the same kind of scene).
+
+The indenter (``indenter``: ``disk`` (size [radius]), ``box`` (half extents [hx, hy]) or
+``wedge`` (apex down, [half width, height])) starts ``gap`` above the highest body point under
+it, at ``indenter_x`` from the body's centre, moves for ``press_time`` at ``speed`` along a
+line ``angle`` degrees from straight down, waits ``hold_time`` and goes back the same way at
+the same speed. It acts on the background nodes as separating contact with Coulomb friction
+``indenter_friction`` (:mod:`datagen.mpm.colliders`); its surface, moved along its path, is
+obstacle geometry a model sees, next to the box's walls (separating, friction ``friction``).
+Gravity points along -y. ``damping``: mass-proportional damping (1/s) of the nodal
+velocities, 0 by default: the loading is slow next to the body's wave speed, so it excites
+little ringing.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .. import shapes
+from ..config import ConfigError
+from ..mesh import Mesh
+from ..mpm.boundary import Wall
+from ..mpm.colliders import Collider, Path
+from .base import Scene, box_bounds, box_domain, check_params, make_material, outline, vertex_volumes
+from .bodies import place_body, read_body
+
+NAME = "press"
+DEFAULTS = {
+    "char": "A", "polygon": None, "mesh": None, "size": 0.12, "box": [0.0, 0.0, 0.24, 0.2], "lift": 0.0,
+    "E": 5e6, "nu": 0.4, "density": 1200.0, "gravity": 9.81, "friction": 0.5, "material": "neo_hookean",
+    "body_size": 0.0025, "min_nodes": 0, "mesh_size": 0.0075, "damping": 0.0,
+    "indenter": "disk", "indenter_size": [0.02], "indenter_x": 0.0, "indenter_friction": 0.3, "gap": 0.002,
+    "speed": 0.045, "angle": 0.0, "press_time": 0.2, "hold_time": 0.0,
+}
+OUTPUT = {"frames": 40, "frame_interval": 0.01}
+SOLVER = {"transfer": "flip"}
+INDENTER_SIZES = {"disk": 1, "box": 2, "wedge": 2}
+_OPTIONAL = ("polygon", "mesh")
+
+
+def params(given: dict) -> dict:
+    if not isinstance(given, dict):
+        raise ConfigError(f"params must be a mapping of {NAME} parameters, got {type(given).__name__}")
+    optional = {k: given[k] for k in _OPTIONAL if k in given}
+    p = check_params(NAME, DEFAULTS, {k: v for k, v in given.items() if k not in optional},
+                     positive=("size", "E", "density", "body_size", "mesh_size", "speed", "press_time"),
+                     choices={"material": {"linear", "neo_hookean", "fixed_corotated"},
+                              "indenter": set(INDENTER_SIZES)})
+    p.update(optional)
+    if p["polygon"] is not None and p["mesh"] is not None:
+        raise ConfigError("params.polygon and params.mesh both give the body; give one of them (or params.char)")
+    if p["polygon"] is None and p["mesh"] is None and (not isinstance(p["char"], str) or len(p["char"].strip()) != 1):
+        raise ConfigError(f"params.char must be a single visible character, got {p['char']!r}")
+    sizes = p["indenter_size"]
+    want = INDENTER_SIZES[p["indenter"]]
+    if len(sizes) != want or not all(isinstance(s, (int, float)) and not isinstance(s, bool) and s > 0
+                                     for s in sizes):
+        raise ConfigError(f"params.indenter_size must list {want} positive length(s) for a {p['indenter']} "
+                          f"indenter, got {sizes!r}")
+    for key in ("gap", "lift", "hold_time", "damping", "friction", "indenter_friction", "min_nodes"):
+        if not p[key] >= 0:
+            raise ConfigError(f"params.{key} must be >= 0, got {p[key]!r}")
+    if not -80.0 <= p["angle"] <= 80.0:
+        raise ConfigError(f"params.angle must lie in [-80, 80] degrees from straight down, got {p['angle']!r}")
+    box_bounds(p["box"])
+    if len(p["box"]) != 4:
+        raise ConfigError(f"params.box must be a 2D box [x0, y0, x1, y1] (the press scene is 2D), got {p['box']!r}")
+    return p
+
+
+def body_mesh(p: dict) -> Mesh:
+    """The body, scaled to ``size`` and centred at the origin (before it is set on the floor)."""
+    if p["mesh"] is not None:
+        mesh = read_body(p["mesh"], 0)
+        if mesh.dim != 2:
+            raise ConfigError(f"params.mesh holds a {mesh.dim}D mesh; the {NAME} scene needs a 2D mesh")
+    elif p["polygon"] is not None:
+        ring = np.asarray(p["polygon"], float)
+        if ring.ndim != 2 or ring.shape[1] != 2 or len(ring) < 3 or not np.isfinite(ring).all():
+            raise ConfigError(f"params.polygon must list at least 3 [x, y] vertices, got {p['polygon']!r}")
+        ring = ring * (p["size"] / float(np.ptp(ring, axis=0).max()))
+        x, y = ring.T
+        area = 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+        mesh = shapes.polygon(ring, size=_spacing(p, area))
+    else:  # a font height that makes the letter's largest extent ``size``
+        coarse = shapes.glyph(p["char"], 0.25 * p["size"], height=p["size"])
+        scale = p["size"] / float(np.ptp(coarse.nodes, axis=0).max())
+        mesh = shapes.glyph(p["char"], _spacing(p, float(coarse.cell_measures.sum()) * scale**2),
+                            height=p["size"] * scale)
+    return place_body(mesh, np.zeros(2), p["size"])
+
+
+def _spacing(p: dict, area: float) -> float:
+    """The body's mesh spacing: ``body_size``, or finer where a body of ``area`` would otherwise get
+    fewer than ``min_nodes`` nodes (a triangulation of spacing s has about 1.15 area / s^2 nodes)."""
+    if p["min_nodes"] <= 0:
+        return p["body_size"]
+    return min(p["body_size"], math.sqrt(1.15 * area / p["min_nodes"]))
+
+
+def indenter(p: dict, body: Mesh) -> Collider:
+    """The indenter and its path: down along ``angle`` for press_time, hold, and back."""
+    sizes = tuple(float(s) for s in p["indenter_size"])
+    half_width = sizes[0]
+    center = (body.nodes.min(0) + body.nodes.max(0)) / 2
+    x = float(center[0] + p["indenter_x"])
+    under = np.abs(body.nodes[:, 0] - x) <= half_width
+    top = float(body.nodes[under, 1].max() if under.any() else body.nodes[:, 1].max())
+    probe = Collider(p["indenter"], sizes, Path(np.zeros(1), np.zeros((1, 2))), p["indenter_friction"])
+    start = np.array([x, top + p["gap"] - probe.lowest()])
+    angle = math.radians(p["angle"])
+    end = start + p["speed"] * p["press_time"] * np.array([math.sin(angle), -math.cos(angle)])
+    t1, t2 = p["press_time"], p["press_time"] + p["hold_time"]
+    times = np.array([0.0, t1, t2, t2 + t1]) if p["hold_time"] > 0 else np.array([0.0, t1, 2 * t1])
+    points = np.stack([start, end, end, start]) if p["hold_time"] > 0 else np.stack([start, end, start])
+    return Collider(p["indenter"], sizes, Path(times, points), p["indenter_friction"])
+
+
+def build(p: dict) -> Scene:
+    lower, upper = box_bounds(p["box"])
+    body = body_mesh(p)
+    shift = np.array([(lower[0] + upper[0]) / 2, lower[1] + p["lift"] - body.nodes[:, 1].min()])
+    body = Mesh(body.nodes + shift, body.cells)
+    if np.any(body.nodes.max(0) > upper) or np.any(body.nodes.min(0) < lower - 1e-12):
+        raise ConfigError(f"params.size: the body spans {np.round(np.ptp(body.nodes, axis=0), 6).tolist()}, "
+                          f"more than params.box {p['box']} holds; make it smaller or the box larger")
+    collider = indenter(p, body)
+    domain = box_domain(lower, upper, p["mesh_size"])
+    walls_nodes, walls_facets = outline(domain)
+    surface_nodes, surface_facets = collider.surface(p["body_size"])
+    gravity = np.array([0.0, -p["gravity"]])
+    material = make_material(p["material"], p["E"], p["nu"], p["density"])
+    return Scene(
+        domain=domain, body=body, x=body.nodes.copy(), v=np.zeros_like(body.nodes), volume=vertex_volumes(body),
+        materials=[(material, None)], tracked=np.arange(body.n_nodes),
+        walls=[Wall("separating", lambda c, n: np.ones(len(c), bool), p["friction"])],
+        gravity=gravity, grid_spacing=p["mesh_size"],
+        obstacle_nodes=np.concatenate([walls_nodes, surface_nodes]),
+        obstacle_facets=np.concatenate([walls_facets, surface_facets + len(walls_nodes)]).astype(np.int64),
+        colliders=[collider], collider_nodes=[len(surface_nodes)], damping=float(p["damping"]),
+    )

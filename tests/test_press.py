@@ -1,0 +1,158 @@
+"""The press scene (a body on a floor pressed by a moving indenter) and the press family."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from datagen import simulate
+from datagen.config import ConfigError
+from datagen.families import get_family, place
+from datagen.scenes import get_scene
+from datagen.scenes.press import INDENTER_SIZES
+
+press = get_scene("press")
+FAST = {"E": 2e4, "body_size": 0.01, "mesh_size": 0.02, "size": 0.12}
+
+
+def build(**given):
+    return press.build(press.params({**FAST, **given}))
+
+
+def test_body_rests_on_the_floor_with_its_largest_extent_the_size():
+    scene = build(char="H", lift=0.001)
+    nodes = scene.body.nodes
+    assert np.ptp(nodes, axis=0).max() == pytest.approx(0.12, rel=1e-12)
+    assert nodes[:, 1].min() == pytest.approx(0.001, abs=1e-15)
+    assert (nodes.min(0)[0] + nodes.max(0)[0]) / 2 == pytest.approx(0.12, abs=1e-15)  # the middle of the box
+
+
+@pytest.mark.parametrize("shape", sorted(INDENTER_SIZES))
+def test_the_indenter_starts_gap_above_the_body_under_it_and_comes_back(shape):
+    sizes = {"disk": [0.02], "box": [0.02, 0.01], "wedge": [0.02, 0.03]}[shape]
+    scene = build(char="A", indenter=shape, indenter_size=sizes, indenter_x=0.01, gap=0.003, speed=0.05,
+                  angle=30.0, press_time=0.2, hold_time=0.1)
+    collider = scene.colliders[0]
+    start = collider.path.position(0.0)
+    under = np.abs(scene.body.nodes[:, 0] - start[0]) <= sizes[0]
+    assert start[1] + collider.lowest() - scene.body.nodes[under, 1].max() == pytest.approx(0.003, abs=1e-15)
+    assert start[0] == pytest.approx(0.12 + 0.01, abs=1e-15)
+    bottom = collider.path.position(0.2)
+    np.testing.assert_allclose(bottom - start, 0.05 * 0.2 * np.array([math.sin(math.pi / 6), -math.cos(math.pi / 6)]),
+                               atol=1e-15)
+    np.testing.assert_array_equal(collider.path.position(0.3), bottom)  # held
+    np.testing.assert_allclose(collider.path.position(0.5), start, atol=1e-15)  # back where it started
+    np.testing.assert_allclose(collider.path.velocity(0.3, 0.5), -(bottom - start) / 0.2, atol=1e-15)
+
+
+def test_obstacle_positions_move_only_the_indenter_surface_along_its_path():
+    scene = build(char="L", indenter="box", indenter_size=[0.02, 0.01], speed=0.04)
+    times = np.array([0.0, 0.05, 0.2, 0.4])
+    moved = scene.obstacle_positions(times)
+    m = scene.collider_nodes[0]
+    walls = len(scene.obstacle_nodes) - m
+    assert moved.shape == (4, len(scene.obstacle_nodes), 2)
+    np.testing.assert_array_equal(moved[:, :walls], np.broadcast_to(scene.obstacle_nodes[:walls], (4, walls, 2)))
+    path = scene.colliders[0].path
+    for k, t in enumerate(times):
+        np.testing.assert_allclose(moved[k, walls:] - scene.obstacle_nodes[walls:], np.broadcast_to(
+            path.position(t) - path.points[0], (m, 2)), atol=1e-15)
+    # the surface nodes are on the indenter's boundary at t = 0
+    phi, _ = scene.colliders[0].signed_distance(__import__("torch").tensor(scene.obstacle_nodes[walls:]), 0.0)
+    assert float(phi.abs().max()) < 1e-15
+
+
+def test_a_static_scene_has_no_obstacle_positions():
+    glyphs = get_scene("glyphs")
+    scene = glyphs.build(glyphs.params({"body_size": 0.05, "mesh_size": 0.1}))
+    assert scene.obstacle_positions([0.0, 0.1]) is None
+
+
+def test_min_nodes_refines_thin_bodies_only():
+    coarse = build(char="I", body_size=0.01)
+    fine = build(char="I", body_size=0.01, min_nodes=400)
+    assert fine.body.n_nodes >= 400 * 0.8 > coarse.body.n_nodes
+    wide = build(char="M", body_size=0.01, min_nodes=10)  # already above: body_size kept
+    assert wide.body.n_nodes == build(char="M", body_size=0.01).body.n_nodes
+
+
+def test_polygon_and_mesh_bodies():
+    square = [[0, 0], [2, 0], [2, 1], [0, 1]]
+    scene = build(polygon=square)
+    assert np.ptp(scene.body.nodes, axis=0) == pytest.approx([0.12, 0.06], rel=1e-9)
+    area = scene.body.cell_measures.sum()
+    assert area == pytest.approx(0.12 * 0.06, rel=1e-9)
+    inline = {"nodes": [[0, 0], [1, 0], [0, 1], [1, 1]], "cells": [[0, 1, 2], [1, 3, 2]]}
+    assert build(mesh=inline).body.n_nodes == 4
+
+
+@pytest.mark.parametrize("given, message", [
+    ({"indenter": "cone"}, "params.indenter must be one of ['box', 'disk', 'wedge'], got 'cone'"),
+    ({"indenter": "box", "indenter_size": [0.02]},
+     "params.indenter_size must list 2 positive length(s) for a box indenter, got [0.02]"),
+    ({"angle": 90.0}, "params.angle must lie in [-80, 80] degrees from straight down, got 90.0"),
+    ({"gap": -0.1}, "params.gap must be >= 0, got -0.1"),
+    ({"char": "AB"}, "params.char must be a single visible character, got 'AB'"),
+    ({"polygon": [[0, 0], [1, 0], [0, 1]], "mesh": "x.msh"},
+     "params.polygon and params.mesh both give the body; give one of them (or params.char)"),
+    ({"box": [0, 0, 0, 1, 1, 1]}, "params.box must be a 2D box [x0, y0, x1, y1] (the press scene is 2D), got "
+                                  "[0, 0, 0, 1, 1, 1]"),
+])
+def test_bad_parameters_name_the_key(given, message):
+    with pytest.raises(ConfigError) as info:
+        press.params({**FAST, **given})
+    assert str(info.value) == message
+
+
+def test_a_body_larger_than_the_box_is_refused():
+    with pytest.raises(ConfigError, match=r"params.size: the body spans .* more than params.box"):
+        build(size=0.5)
+
+
+def test_the_body_waits_for_the_indenter_then_is_pushed_down():
+    """Two frames of a soft, coarse press: before the indenter arrives the body only settles under
+    gravity (millimetres at most); the indenter's obstacle positions are stored per frame."""
+    config = {"scene": "press", "params": {**FAST, "char": "H", "gap": 0.03, "speed": 0.05, "E": 1e5},
+              "solver": {"cfl": 0.5, "threads": 1}, "output": {"frames": 2, "frame_interval": 0.02}}
+    trajectory = simulate(config)
+    moved = trajectory.obstacle_positions
+    assert moved.shape == (3, len(trajectory.obstacle_nodes), 2)
+    drop = moved[:, -1, 1] - moved[0, -1, 1]
+    np.testing.assert_allclose(drop, [0.0, -0.001, -0.002], atol=1e-12)
+    sag = np.abs(trajectory.positions[-1] - trajectory.positions[0]).max()
+    g, rho, E, h = 9.81, 1200.0, 1e5, 0.12
+    assert 0 < sag < 5 * rho * g * h**2 / E  # no contact yet: gravity sag only (static estimate 1.7 mm)
+
+
+# ----------------------------------------------------------------------------- family
+def test_family_samples_are_deterministic_and_test_shapes_are_unseen():
+    family = get_family("press")
+    draws = [family.sample({}, np.random.default_rng(k), "test") for k in range(12)]
+    again = [family.sample({}, np.random.default_rng(k), "test") for k in range(12)]
+    assert draws == again
+    assert any("polygon" in p for p in draws) and any("char" in p for p in draws)
+    assert all(p["char"] in "GJQSU" for p in draws if "char" in p)
+    train = [family.sample({}, np.random.default_rng(k), "train") for k in range(12)]
+    assert all("polygon" not in p and p["char"] in "ABCDEFHKLMNPRTVWXYZ" for p in train)
+    for p in draws + train:
+        assert 1e6 <= p["E"] <= 2e7 and 0.3 <= p["nu"] <= 0.45 and 0.03 <= p["speed"] <= 0.06
+        assert p["indenter"] in INDENTER_SIZES and len(p["indenter_size"]) == INDENTER_SIZES[p["indenter"]]
+
+
+def test_family_places_one_foreign_mesh_with_overrides(tmp_path):
+    inline_nodes = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], float)
+    from datagen.mesh import Mesh
+    path = tmp_path / "square.msh"
+    Mesh(inline_nodes, np.array([[0, 1, 2], [1, 3, 2]])).write(path)
+    dconfig = {"family": "press", "params": {"body_size": 0.01, "mesh_size": 0.02}, "solver": {"threads": 1},
+               "output": {"frames": 3, "frame_interval": 0.01}}
+    config = place("press", [str(path)], dconfig, {"indenter": "wedge", "indenter_size": [0.02, 0.03]})
+    p = config["params"]
+    assert config["scene"] == "press" and p["mesh"] == str(path.resolve())
+    assert p["indenter"] == "wedge" and p["size"] == pytest.approx(0.115) and p["E"] == pytest.approx(math.sqrt(2e13))
+    with pytest.raises(ConfigError, match="family 'press' presses one body"):
+        place("press", [str(path), str(path)], dconfig)
+    with pytest.raises(ConfigError, match="overrides.chars is not a press scene parameter"):
+        place("press", [str(path)], dconfig, {"chars": ["A"]})
