@@ -69,6 +69,8 @@ def setting_config(base: dict, setting: str, frames: int, dt: float | None = Non
         if "body_size" not in params:
             return None
         params["body_size"] = 1.5 * params["body_size"]
+        if params.get("min_nodes"):  # a node floor (press scene) is coarsened alike: 1.5^2 fewer nodes
+            params["min_nodes"] = max(1, round(params["min_nodes"] / 2.25))
     elif setting == "large_step":
         if solver.get("dt"):
             solver["dt"] = 2.0 * solver["dt"]

@@ -152,3 +152,32 @@ def test_errors_name_the_file_and_the_fix(run_2d, tmp_path):
     assert "has no usable checkpoint" in result.stderr and "train it with python train.py CONFIG" in result.stderr
     result = run_cli(run, "--mesh", tmp_path / "nothing.msh")
     assert result.returncode == 2 and f"mesh file {tmp_path / 'nothing.msh'} does not exist" in result.stderr
+
+
+def test_a_pretrained_export_infers_like_its_run(run_2d, tmp_path):
+    """The exported folder keeps weights and normalisers only (weights_only loadable, no optimiser),
+    and inference from it equals inference from the run, bit for bit."""
+    import torch
+
+    from bsms.pretrained import main as export_main
+
+    run, _ = run_2d
+    out = tmp_path / "pretrained"
+    assert export_main([str(run), str(out)]) == 0
+    state = torch.load(out / "checkpoints" / "best.pt", map_location="cpu", weights_only=True)
+    assert sorted(state) == sorted(k for k in ("format", "config", "dim", "fields", "step", "best_valid", "seconds",
+                                                "model"))
+    assert any("normalizer" in key or "mean" in key for key in state["model"])
+    assert (out / "config.yaml").is_file() and json.loads((out / "dataset.json").read_text())["family"] == "glyphs"
+    mesh_file = write(shapes.disk(1.0, 0.3), tmp_path / "disk.msh")
+    for folder, name in ((run, "from_run"), (out, "from_export")):
+        assert main([str(folder), "--mesh", str(mesh_file), "--steps", "2", "--out", str(tmp_path / name),
+                     "--quiet"]) == 0
+    read = [meshio.xdmf.TimeSeriesReader(str(tmp_path / name / "prediction.xdmf")) for name in ("from_run",
+                                                                                               "from_export")]
+    for reader in read:
+        reader.read_points_cells()
+    moved = [np.stack([reader.read_data(k)[1]["position"] for k in range(3)]) for reader in read]
+    assert np.abs(moved[0][2] - moved[0][0]).max() > 0  # the bodies moved
+    np.testing.assert_array_equal(moved[0], moved[1])
+    assert export_main([str(tmp_path / "missing"), str(tmp_path / "x")]) == 2

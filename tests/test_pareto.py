@@ -133,6 +133,10 @@ def test_setting_config_changes_exactly_one_knob():
     fixed_step = copy.deepcopy(BASE)
     fixed_step["solver"]["dt"] = 0.001
     assert setting_config(fixed_step, "large_step", 6)["solver"] == {**fixed_step["solver"], "dt": 0.002}
+    floor = copy.deepcopy(BASE)
+    floor["params"]["min_nodes"] = 1000
+    assert setting_config(floor, "fewer_particles", 6)["params"] == {**floor["params"], "body_size": 1.5 * 0.05,
+                                                                      "min_nodes": 444}
     assert BASE == before, "the base config is not touched"
 
 

@@ -26,6 +26,7 @@ from .placement import _dataset_config, _mesh_entry
 NAME = "press"
 SCENE = "press"
 DIM, CONTACT, OBSTACLES, CLAMPED = 2, True, True, False
+DRIVEN = True  # the indenter moves as prescribed and does work on the body
 RANGES = {
     "train_chars": "ABCDEFHKLMNPRTVWXYZ", "test_chars": "GJQSU", "test_polygons": 0.5, "polygon_vertices": [5, 9],
     "size": [0.1, 0.13], "E": [1e6, 2e7], "nu": [0.3, 0.45], "density": [1000.0, 1500.0],
