@@ -43,18 +43,18 @@ THESIS_NOTE = ("thesis Table 4.5 (cylinder flow): train ms/step BSMS 10.1, GRID 
                "bistride 16.8, none 259, graph_conv 551, pos_kernel 20.1, learnable 15.7")
 
 
-def train(config: str, name: str, model: str, transition: str, steps: int, runs: Path, extra: list[str]) -> int:
-    """Train one variant (resuming an interrupted run; a finished one is kept); returns the
-    training process' peak resident set in bytes (0 when nothing ran)."""
+def train(config: str, name: str, variant: list[str], steps: int, runs: Path, extra: list[str]) -> int:
+    """Train one variant (``variant``: its key=value overrides of ``config``; resuming an
+    interrupted run, keeping a finished one); returns the training process' peak resident set
+    in bytes (0 when nothing ran)."""
     run = runs / name
     done = run / "metrics.csv"
     if done.is_file():
         rows = list(csv.DictReader(done.open()))
         if rows and int(rows[-1]["step"]) >= steps and (run / "checkpoints" / "best.pt").is_file():
             return 0
-    command = [sys.executable, str(ROOT / "train.py"), config, f"name={name}", f"runs={runs}",
-               f"model.name={model}", f"model.transition={transition}", f"train.steps={steps}",
-               "evaluate.enabled=false", *extra]
+    command = [sys.executable, str(ROOT / "train.py"), config, f"name={name}", f"runs={runs}", *variant,
+               f"train.steps={steps}", "evaluate.enabled=false", *extra]
     if (run / "checkpoints" / "latest.pt").is_file():
         command.append("--resume")
     print(f"training {name}: {' '.join(command[2:])}", flush=True)
@@ -72,6 +72,20 @@ def train_ms_per_step(run: Path) -> float:
     rows = list(csv.DictReader((run / "metrics.csv").open()))
     first, last = rows[0], rows[-1]
     return 1e3 * (float(last["seconds"]) - float(first["seconds"])) / (int(last["step"]) - int(first["step"]))
+
+
+def evaluate_runs(runs: list[Path], threads: int, trajectories: int | None, no_solver: bool) -> dict:
+    """One ``bsms.evaluate`` of ``runs[0]`` with the others compared, on the same trajectories and
+    threads; returns its metrics.json (the report and charts are in ``runs[0]``)."""
+    first, *rest = runs
+    command = [sys.executable, "-m", "bsms.evaluate", str(first), "--compare", *map(str, rest),
+               "--threads", str(threads), "--quiet"]
+    if trajectories:
+        command += ["--trajectories", str(trajectories)]
+    if no_solver:
+        command.append("--no-solver")
+    subprocess.run(command, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    return json.loads((first / "evaluation" / "metrics.json").read_text())
 
 
 def table(runs: Path, names: dict[str, str], metrics: dict) -> list[str]:
@@ -111,16 +125,12 @@ def main(argv=None) -> None:
         parser.error("--steps must be >= 1")
     names = {label: f"{args.prefix}_{label.replace('-', '_').lower()}" for label in args.models}
     for label, name in names.items():
-        train(args.config, name, *known[label], args.steps, args.runs, args.overrides)
-    first, *rest = [args.runs / name for name in names.values()]
-    command = [sys.executable, "-m", "bsms.evaluate", str(first), "--compare", *map(str, rest),
-               "--threads", str(args.threads), "--quiet"]
-    if args.trajectories:
-        command += ["--trajectories", str(args.trajectories)]
-    if args.no_solver:
-        command.append("--no-solver")
-    subprocess.run(command, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
-    metrics = json.loads((first / "evaluation" / "metrics.json").read_text())
+        model, transition = known[label]
+        train(args.config, name, [f"model.name={model}", f"model.transition={transition}"], args.steps, args.runs,
+              args.overrides)
+    first = args.runs / next(iter(names.values()))
+    metrics = evaluate_runs([args.runs / name for name in names.values()], args.threads, args.trajectories,
+                            args.no_solver)
     lines = table(args.runs, names, metrics)
     out = args.runs / f"{args.prefix}_comparison.md"
     out.write_text(f"{args.steps} training steps each, config {args.config}\n\n" + "\n".join(lines)

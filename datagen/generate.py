@@ -99,11 +99,16 @@ def _run_jobs(dconfig, out, todo, workers: int, progress: bool) -> list[Result]:
     else:
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        pool = ProcessPoolExecutor(max_workers=workers)
+        try:
             futures = [pool.submit(generate_one, dconfig, out, s, k) for s, k in todo]
             for future in as_completed(futures):
                 results.append(future.result())
                 bar.update()
+        except BaseException:  # an interrupt or a failed job: the queued jobs never start (the running
+            pool.shutdown(wait=True, cancel_futures=True)  # ones finish, their files written atomically)
+            raise
+        pool.shutdown()
     bar.close()
     return sorted(results, key=lambda r: r.path)
 

@@ -1,0 +1,79 @@
+"""Are the press family's solver settings the ones it needs? A convergence check on stored trajectories.
+
+For the first ``--trajectories`` files of a split, re-runs each generating config (one thread)
+
+* with the background mesh 2x finer (``params.mesh_size / 2``; the body mesh, whose vertices
+  are the tracked points, unchanged), and
+* with the plain updated-Lagrangian solver (``solver.reference: eulerian``) instead of the
+  data's A-ULMPM ``adaptive`` reference,
+
+and reports how far each moves the stored rollout: RMSE over all frames and free body nodes,
+relative to the body size (the measure the surrogate's accuracy target uses). The data's
+settings are adequate when both stay below the target. Ends with exactly
+``press convergence: finer mesh rel A (max B), eulerian rel C (max D), target T``.
+
+    python benchmarks/press_convergence.py [--data data/press] [--split test] [--trajectories 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from bsms.rollout import body_size, rollout_metrics  # noqa: E402
+from bsms.solver_runs import free_nodes  # noqa: E402
+from datagen import simulate  # noqa: E402
+from datagen.dataset import load  # noqa: E402
+
+CHECKS = {
+    "finer mesh": lambda c: c["params"].update(mesh_size=c["params"]["mesh_size"] / 2),
+    "eulerian": lambda c: c["solver"].update(reference="eulerian"),
+}
+
+
+def check(trajectory, name: str) -> dict:
+    config = copy.deepcopy(trajectory.config)
+    config["solver"]["threads"] = 1
+    config["output"]["step_diagnostics"] = False
+    CHECKS[name](config)
+    start = time.perf_counter()
+    other = simulate(config)
+    metrics = rollout_metrics(other.positions, trajectory.positions, free_nodes(trajectory),
+                              body_size(trajectory.mesh.nodes))
+    return {"rel_all": metrics["rel_all"], "seconds": time.perf_counter() - start, "substeps": other.substeps}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, default=Path("data/press"), help="dataset folder (default data/press)")
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--trajectories", type=int, default=2)
+    parser.add_argument("--target", type=float, default=0.01, help="accuracy target, relative (default 0.01)")
+    args = parser.parse_args(argv)
+    files = sorted((args.data / args.split).glob("*.h5"))[: args.trajectories]
+    if not files:
+        raise SystemExit(f"no trajectories in {args.data / args.split}; generate them with python -m datagen")
+    results = {name: [] for name in CHECKS}
+    print("| trajectory | E (MPa) | data substeps/frame | check | substeps/frame | rel RMSE all | solver s |")
+    print("|---|---|---|---|---|---|---|")
+    for path in files:
+        trajectory = load(path)
+        for name in CHECKS:
+            r = check(trajectory, name)
+            results[name].append(r["rel_all"])
+            print(f"| {path.name} | {trajectory.config['params']['E'] / 1e6:.2f} | {trajectory.substeps} | {name} "
+                  f"| {r['substeps']} | {r['rel_all']:.3g} | {r['seconds']:.0f} |", flush=True)
+    fine, eul = (np.asarray(results[name]) for name in CHECKS)
+    print(f"press convergence: finer mesh rel {fine.mean():.3g} (max {fine.max():.3g}), eulerian rel "
+          f"{eul.mean():.3g} (max {eul.max():.3g}), target {args.target:g}")
+
+
+if __name__ == "__main__":
+    main()
