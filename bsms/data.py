@@ -352,7 +352,24 @@ class NoiseOptions:
                               f"'{prefix}.fields.NAME'")
 
 
-class FrameDataset(torch.utils.data.Dataset):
+class NumberedSamples(torch.utils.data.Dataset):
+    """Samples numbered across trajectories: trajectory k's samples are ``_starts[k]`` to
+    ``_starts[k + 1] - 1``, one per usable frame."""
+
+    _starts: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    def locate(self, index: int) -> tuple[int, int]:
+        """(trajectory, frame) of sample ``index``."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"sample {index} out of range for {len(self)} samples")
+        trajectory = int(np.searchsorted(self._starts, index, side="right") - 1)
+        return trajectory, int(index - self._starts[trajectory])
+
+
+class FrameDataset(NumberedSamples):
     """Every (trajectory, frame t) of some trajectory files as one-step samples t -> t+1.
 
     Scenarios (hierarchies) are built once per file (``cache_dir`` keeps hierarchies across
@@ -411,16 +428,6 @@ class FrameDataset(torch.utils.data.Dataset):
             raise DatasetError(f"{source} holds {spec.describe()}, but {self.files[0]} holds "
                                f"{self.spec.describe()}; trajectory files mix dimensions or fields")
         return spec
-
-    def __len__(self) -> int:
-        return int(self._starts[-1])
-
-    def locate(self, index: int) -> tuple[int, int]:
-        """(trajectory, frame) of sample ``index``."""
-        if not 0 <= index < len(self):
-            raise IndexError(f"sample {index} out of range for {len(self)} samples")
-        trajectory = int(np.searchsorted(self._starts, index, side="right") - 1)
-        return trajectory, int(index - self._starts[trajectory])
 
     def __getitem__(self, key) -> LevelGraph:
         index, noise_seed = key if isinstance(key, tuple) else (key, None)

@@ -35,7 +35,7 @@ from torch import Tensor
 from torch_geometric.data import Batch
 
 from bsms.config import ConfigError
-from bsms.data import FrameDataset, LevelGraph
+from bsms.data import FrameDataset, LevelGraph, NumberedSamples
 from bsms.level_graph import level_graph
 from bsms.rollout import integrate
 
@@ -73,7 +73,7 @@ def collate(items) -> UnrollBatch:
     return UnrollBatch(Batch.from_data_list(list(graphs)), None if starts[0] is None else list(starts))
 
 
-class UnrollSamples(torch.utils.data.Dataset):
+class UnrollSamples(NumberedSamples):
     """The samples (trajectory, frame t) of ``frames`` with t + ``unroll`` <= T - 1, each item
     (step 0's graph, its :class:`Start`). Keys are those of :class:`~bsms.data.FrameDataset`:
     an index, or ``(index, noise_seed)``. With ``unroll`` 1 the samples, their order and their
@@ -92,16 +92,6 @@ class UnrollSamples(torch.utils.data.Dataset):
             raise ConfigError(f"config key '{key}' ({self.unroll}) needs trajectories of more than {self.unroll} "
                               f"frames; the longest of the {len(lengths)} training trajectories has {max(lengths)}")
         self._starts = np.concatenate([[0], np.cumsum(counts)])
-
-    def __len__(self) -> int:
-        return int(self._starts[-1])
-
-    def locate(self, index: int) -> tuple[int, int]:
-        """(trajectory, frame t) of sample ``index``."""
-        if not 0 <= index < len(self):
-            raise IndexError(f"sample {index} out of range for {len(self)} samples")
-        trajectory = int(np.searchsorted(self._starts, index, side="right") - 1)
-        return trajectory, int(index - self._starts[trajectory])
 
     def __getitem__(self, key) -> tuple[LevelGraph, Start | None]:
         if self.unroll == 1:
