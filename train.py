@@ -21,6 +21,7 @@ from bsms.config import ConfigError
 from bsms.evaluate import evaluate
 from bsms.run import checkpoint_path, load_config
 from bsms.trainer import Trainer, TrainingDiverged
+from datagen import interrupts
 from datagen.config import output_folder
 from datagen.dataset import DatasetError
 
@@ -48,11 +49,13 @@ def _after_interrupt(config, args) -> str:
 
 
 def _interrupt_on_sigterm() -> None:
-    """Until training installs its own handler, SIGTERM (what batch schedulers send) acts like Ctrl-C."""
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, handler)
+    """Until training installs its own handler, SIGTERM (what batch schedulers send) acts like Ctrl-C,
+    and both are recorded (:mod:`datagen.interrupts`): dataset generation checks between frames, so
+    an interrupt swallowed inside a finalizer still stops the start-up. An ignored SIGINT (a
+    background job's) stays ignored."""
+    signal.signal(signal.SIGTERM, interrupts.request)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, interrupts.request)
 
 
 def main(argv=None) -> int:

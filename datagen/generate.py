@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import interrupts
 from .config import ConfigError, output_folder
 from .dataset import DatasetError, is_complete, save
 from .dataset_config import SPLITS, load_dataset_config, trajectory_config, trajectory_path
@@ -94,6 +95,7 @@ def _run_jobs(dconfig, out, todo, workers: int, progress: bool) -> list[Result]:
     results = []
     if workers <= 1:
         for split, index in todo:
+            interrupts.check()
             results.append(generate_one(dconfig, out, split, index))
             bar.update()
     else:

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from . import interrupts
 from .config import ConfigError, read_yaml, reject_unknown
 from .layer import ExtendedMesh, with_extra_layer
 from .mpm import linalg
@@ -335,22 +336,41 @@ def _stack(records: list[dict]) -> dict:
     return {k: np.stack([r[k] for r in records]) for k in records[0]}
 
 
+def settle(sim: Simulation) -> State:
+    """The initial state after the scene's settling pre-roll (``scene.settle = (seconds, damping)``):
+    the body relaxes under gravity with mass-proportional damping (1/s) from t = -seconds, the
+    colliders held at their start (paths hold before t = 0), and the clock is set to 0 after, so
+    frame 0 is a body at rest in equilibrium instead of one about to ring as gravity comes on."""
+    if not sim.scene.settle:
+        return sim.state
+    seconds, damping = sim.scene.settle
+    model = replace(sim.model, damping=float(damping))
+    steps = max(1, math.ceil(seconds / sim.dt - 1e-9))
+    state = replace(sim.state, time=-steps * sim.dt)
+    for _ in range(steps):
+        interrupts.check()
+        state = step(model, state, sim.dt)
+    return replace(state, time=0.0, step=0, v=torch.zeros_like(state.v))
+
+
 def run(sim: Simulation) -> Trajectory:
-    """Step the simulation through its frames and collect the trajectory."""
+    """Step the simulation through its frames (after its settling pre-roll, if any) and collect
+    the trajectory."""
     frames = sim.config["output"]["frames"]
     tracked = torch.as_tensor(sim.scene.tracked, dtype=torch.int64, device=sim.state.x.device)
-    state = sim.state
+    state = settle(sim)
     positions, velocities, times, records, per_step = [], [], [], [], []
 
     def snapshot(s: State):
         positions.append(s.x[tracked].cpu().numpy())
         velocities.append(s.v[tracked].cpu().numpy())
         times.append(s.time)
-        records.append(_frame_record(sim, s, s.step - sim.state.step))
+        records.append(_frame_record(sim, s, s.step))
 
     snapshot(state)
     frame_wall = [0.0]
     for _ in range(frames):
+        interrupts.check()  # a stop request whose KeyboardInterrupt was swallowed
         start = time.perf_counter()
         for _ in range(sim.substeps):
             state = step(sim.model, state, sim.dt)

@@ -38,9 +38,15 @@ def _config(tiny_dataset, tmp_path, name="run", **sections) -> Path:
     return path
 
 
+def _default_interrupts() -> None:
+    """In the child: SIGINT back to its default action, which Python then turns into
+    KeyboardInterrupt (a test suite started in the background inherits it ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(config: Path, *extra: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, str(ROOT / "train.py"), str(config), *extra], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
+                            stderr=subprocess.PIPE, text=True, env=ENV, cwd=ROOT, preexec_fn=_default_interrupts)
 
 
 def _wait_for_steps(process: subprocess.Popen, metrics: Path, steps: int) -> None:

@@ -123,3 +123,25 @@ def test_cli_subprocess_exits_nonzero_with_one_line(tmp_path):
     run = subprocess.run([sys.executable, "-m", "datagen", str(QUICK), "--shard", "3/2"], cwd=ROOT,
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and run.stderr.strip() == "error: --shard 3/2: need 0 <= I < N (shards are numbered 0 to N-1)"
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_a_stop_request_swallowed_by_a_finalizer_still_stops_generation(tmp_path):
+    """A KeyboardInterrupt raised by a signal handler inside a finalizer is printed and dropped
+    by Python; the recorded request stops generation before the next trajectory or frame."""
+    from datagen import interrupts
+
+    class Finalized:
+        def __del__(self):
+            interrupts.request()
+
+    Finalized()  # the handler fires in __del__: "Exception ignored", the KeyboardInterrupt is gone
+    try:
+        assert interrupts.pending()
+        with pytest.raises(KeyboardInterrupt):
+            generate(QUICK, out=tmp_path, splits=["valid"], progress=False)
+        assert not list(tmp_path.rglob("*.h5")), "nothing was generated"
+        interrupts.clear()
+        interrupts.check()  # cleared: no longer raises
+    finally:
+        interrupts.clear()

@@ -31,7 +31,7 @@ RANGES = {
     "train_chars": "ABCDEFHKLMNPRTVWXYZ", "test_chars": "GJQSU", "test_polygons": 0.5, "polygon_vertices": [5, 9],
     "size": [0.1, 0.13], "E": [1e6, 2e7], "nu": [0.3, 0.45], "density": [1000.0, 1500.0],
     "indenters": ["disk", "box", "wedge"], "indenter_scale": [0.12, 0.25], "indenter_aspect": [0.4, 1.0],
-    "indenter_offset": [-0.25, 0.25], "speed": [0.03, 0.06], "angle": [-20.0, 20.0], "gap": [0.001, 0.003],
+    "indenter_offset": [-0.25, 0.25], "speed": [0.03, 0.06], "angle": [-10.0, 10.0], "gap": [0.001, 0.003],
     "press_time": 0.2, "hold_time": 0.0,
 }
 

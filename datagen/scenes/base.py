@@ -37,7 +37,8 @@ class Scene:
     colliders: moving rigid obstacles (:class:`~datagen.mpm.colliders.Collider`) acting on the
     background nodes; each one's surface is the last ``collider_nodes[k]`` obstacle nodes, moved
     with it (:meth:`obstacle_positions`). damping: mass-proportional damping rate (1/s) of the
-    nodal velocities.
+    nodal velocities. settle: (seconds, damping) of a pre-roll before frame 0 in which the body
+    comes to rest under gravity (:func:`datagen.simulation.settle`), or None.
     frame_diagnostics: (simulation, state) -> name -> array, extra per-frame diagnostics
     (e.g. a slope's run-out); the simulation is a datagen.simulation.Simulation.
     """
@@ -63,6 +64,7 @@ class Scene:
     colliders: list = field(default_factory=list)
     collider_nodes: list = field(default_factory=list)
     damping: float = 0.0
+    settle: tuple[float, float] | None = None
 
     @property
     def dim(self) -> int:

@@ -15,9 +15,10 @@ line ``angle`` degrees from straight down, waits ``hold_time`` and goes back the
 the same speed. It acts on the background nodes as separating contact with Coulomb friction
 ``indenter_friction`` (:mod:`datagen.mpm.colliders`); its surface, moved along its path, is
 obstacle geometry a model sees, next to the box's walls (separating, friction ``friction``).
-Gravity points along -y. ``damping``: mass-proportional damping (1/s) of the nodal
-velocities, 0 by default: the loading is slow next to the body's wave speed, so it excites
-little ringing.
+Gravity points along -y. ``settle_time`` (s): a pre-roll with mass-proportional damping
+``settle_damping`` (1/s) in which the body comes to rest on the floor under gravity before
+frame 0 (the indenter held at its start), so that gravity coming on does not set it ringing;
+``damping``: mass-proportional damping (1/s) of the nodal velocities during the frames.
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ NAME = "press"
 DEFAULTS = {
     "char": "A", "polygon": None, "mesh": None, "size": 0.12, "box": [0.0, 0.0, 0.24, 0.2], "lift": 0.0,
     "E": 5e6, "nu": 0.4, "density": 1200.0, "gravity": 9.81, "friction": 0.5, "material": "neo_hookean",
-    "body_size": 0.0025, "min_nodes": 0, "mesh_size": 0.0075, "damping": 0.0,
+    "body_size": 0.0025, "min_nodes": 0, "mesh_size": 0.0075, "damping": 0.0, "settle_time": 0.0,
+    "settle_damping": 400.0,
     "indenter": "disk", "indenter_size": [0.02], "indenter_x": 0.0, "indenter_friction": 0.3, "gap": 0.002,
     "speed": 0.045, "angle": 0.0, "press_time": 0.2, "hold_time": 0.0,
 }
@@ -67,7 +69,8 @@ def params(given: dict) -> dict:
                                      for s in sizes):
         raise ConfigError(f"params.indenter_size must list {want} positive length(s) for a {p['indenter']} "
                           f"indenter, got {sizes!r}")
-    for key in ("gap", "lift", "hold_time", "damping", "friction", "indenter_friction", "min_nodes"):
+    for key in ("gap", "lift", "hold_time", "damping", "friction", "indenter_friction", "min_nodes", "settle_time",
+                "settle_damping"):
         if not p[key] >= 0:
             raise ConfigError(f"params.{key} must be >= 0, got {p[key]!r}")
     if not -80.0 <= p["angle"] <= 80.0:
@@ -148,4 +151,5 @@ def build(p: dict) -> Scene:
         obstacle_nodes=np.concatenate([walls_nodes, surface_nodes]),
         obstacle_facets=np.concatenate([walls_facets, surface_facets + len(walls_nodes)]).astype(np.int64),
         colliders=[collider], collider_nodes=[len(surface_nodes)], damping=float(p["damping"]),
+        settle=(p["settle_time"], p["settle_damping"]) if p["settle_time"] > 0 else None,
     )
