@@ -53,9 +53,8 @@ def _interrupt_on_sigterm() -> None:
     and both are recorded (:mod:`datagen.interrupts`): dataset generation checks between frames, so
     an interrupt swallowed inside a finalizer still stops the start-up. An ignored SIGINT (a
     background job's) stays ignored."""
-    signal.signal(signal.SIGTERM, interrupts.request)
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, interrupts.request)
+    ignored = signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    interrupts.install([signal.SIGTERM] if ignored else [signal.SIGTERM, signal.SIGINT])
 
 
 def main(argv=None) -> int:

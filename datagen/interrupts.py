@@ -9,7 +9,10 @@ trajectories), which raises again while a request is pending.
 
 from __future__ import annotations
 
-__all__ = ["request", "check", "clear", "pending"]
+import signal
+import sys
+
+__all__ = ["request", "check", "clear", "pending", "install"]
 
 _pending = False
 
@@ -19,6 +22,21 @@ def request(signum=None, frame=None) -> None:
     global _pending
     _pending = True
     raise KeyboardInterrupt
+
+
+def install(signals) -> None:
+    """:func:`request` as the handler of ``signals``; a KeyboardInterrupt it raises inside a
+    finalizer is then not printed as "Exception ignored" (the request is recorded and acted on
+    at the next :func:`check`); other unraisable exceptions reach the previous hook."""
+    for sig in signals:
+        signal.signal(sig, request)
+    previous = sys.unraisablehook
+
+    def hook(unraisable) -> None:
+        if not (_pending and isinstance(unraisable.exc_value, KeyboardInterrupt)):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
 
 
 def check() -> None:

@@ -135,7 +135,21 @@ def test_a_stop_request_swallowed_by_a_finalizer_still_stops_generation(tmp_path
         def __del__(self):
             interrupts.request()
 
-    Finalized()  # the handler fires in __del__: "Exception ignored", the KeyboardInterrupt is gone
+    class Broken:
+        def __del__(self):
+            raise ValueError("not an interrupt")
+
+    seen = []
+    hook = sys.unraisablehook
+    sys.unraisablehook = seen.append
+    try:
+        interrupts.install([])  # the quiet hook, in front of ``seen``
+        Finalized()  # the handler fires in __del__: the KeyboardInterrupt is swallowed, and not printed
+        assert seen == [], "a recorded interrupt is not reported as an unraisable exception"
+        Broken()  # any other exception in a finalizer still is
+        assert [type(u.exc_value) for u in seen] == [ValueError]
+    finally:
+        sys.unraisablehook = hook
     try:
         assert interrupts.pending()
         with pytest.raises(KeyboardInterrupt):
