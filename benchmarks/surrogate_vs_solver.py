@@ -42,7 +42,11 @@ from bsms.solver_runs import SOLVER_SETTINGS  # noqa: E402
 from datagen.dataset_config import trajectory_path  # noqa: E402
 from datagen.generate import generate, jobs  # noqa: E402
 
-NAMES = {label: name for name, label in SOLVER_SETTINGS.items()}
+
+def setting_name(label: str) -> str:
+    """The SOLVER_SETTINGS name of a row label (``stability_limit``'s carries its step factor)."""
+    names = [name for name, prefix in SOLVER_SETTINGS.items() if label == prefix or label.startswith(prefix + " (")]
+    return names[0] if names else label
 
 
 def ensure_test_split(dconfig: dict, root: Path) -> None:
@@ -66,7 +70,7 @@ def copy_run(pretrained: Path, run: Path) -> None:
 def verdict(rows: list[dict]) -> str:
     """The last line, from the evaluation's rows (the first learned row is the model)."""
     model = next(r for r in rows if r["kind"] != "solver")
-    dominated = [NAMES.get(label, label) for label in model.get("dominated_by") or []]
+    dominated = [setting_name(label) for label in model.get("dominated_by") or []]
     return (f"surrogate: speedup {model['speedup']:.3g} x, rel RMSE all {model['rel_all']:.3g}, "
             f"unstable {model['unstable']} of {model['trajectories']}, dominated by {', '.join(dominated) or 'none'}")
 

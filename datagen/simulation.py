@@ -281,8 +281,7 @@ def build_solver_model(scene: Scene, solver: dict) -> tuple[Model, State]:
         conditions=tuple(conditions), gravity=torch.as_tensor(gravity, dtype=dtype, device=device),
         node_positions=nodes, h_cfl=float(h_cfl), reference=solver["reference"], epsilon=float(solver["epsilon"]),
         fraction=float(solver["fraction"]), contact_margin=solver["contact_margin"], grips=grips,
-        colliders=tuple(getattr(scene, "colliders", None) or ()),
-        damping=float(getattr(scene, "damping", 0.0)), fbar=solver["fbar"], **reference,
+        colliders=tuple(scene.colliders), damping=float(scene.damping), fbar=solver["fbar"], **reference,
     )
     state = State.at_rest_shape(scene.x, scene.v, scene.volume, scene.density(), device=device, dtype=dtype)
     if scene.initial_F is not None:  # a body that starts deformed (e.g. compressed)
@@ -350,6 +349,8 @@ def settle(sim: Simulation) -> State:
     for _ in range(steps):
         interrupts.check()
         state = step(model, state, sim.dt)
+    # the particles' velocities are zeroed: FLIP keeps particle-level noise after the motion has died
+    # out, and frame 0's velocity is a learned model's first input
     return replace(state, time=0.0, step=0, v=torch.zeros_like(state.v))
 
 

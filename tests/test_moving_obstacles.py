@@ -157,7 +157,9 @@ def test_scenario_positions_place_moving_obstacles_and_keep_static_ones_at_rest(
     scenario = Scenario.from_trajectory(trajectory, GraphOptions(levels=2))
     assert scenario.obstacle_geometry is not None and scenario.n_nodes - scenario.n_body == 13
     static = scenario.positions(trajectory.positions)
-    assert np.array_equal(static, scenario.full(trajectory.positions))
+    n = scenario.n_body
+    assert np.array_equal(static[:, :n], trajectory.positions), "body rows are the trajectory's"
+    assert np.array_equal(static[:, n:], np.broadcast_to(scenario.rest_pos[n:], static[:, n:].shape)), "obstacles at rest"
     moving = scenario.positions(trajectory.positions, trajectory.obstacle_positions)
     assert np.array_equal(moving[:, : scenario.n_body], trajectory.positions)
     assert np.array_equal(moving[0], static[0]), "frame 0 is the rest geometry, bit for bit"

@@ -36,10 +36,9 @@ SOLVER = {"transfer": "flip", "epsilon": 0.5, "fraction": 0.1, "cfl": 0.4}
 @dataclass
 class GrippedScene(Scene):
     """A scene whose particle sets ``grips`` [(ids, velocity(t) -> (d,) or None)] move as
-    prescribed, with mass-proportional ``damping`` (1/s) of the nodal velocities."""
+    prescribed (with :class:`Scene`'s mass-proportional ``damping``, 1/s, of the nodal velocities)."""
 
     grips: list = field(default_factory=list)
-    damping: float = 0.0
 
 
 def params(given: dict) -> dict:
