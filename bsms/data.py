@@ -65,6 +65,14 @@ class GraphOptions:
     constants: scene parameters (names in the trajectory's ``params``) fed to every node,
         such as ``E``; positive values spanning a decade or more are best given as ``log_E``
         (the natural log of ``E``).
+    quasi_static: first-order learning for driven, slow scenes (DeepMind's DEFORMINGPLATE):
+        free nodes get no velocity input (0), and the model predicts their whole velocity over
+        the coming frame, x_{t+1} = x_t + dt out, so a one-step error grows a rollout's error
+        linearly, not quadratically, and motion the frames cannot resolve (elastic ringing,
+        contact chatter aliased by the frame interval) is neither an input nor carried over.
+        Kinematic nodes keep the velocity of their coming step. Position noise is then undone
+        in full by the target (``noise.gamma`` does not apply; ``noise.velocity`` must be 0).
+        Lagrangian data only.
     """
 
     levels: int = 4
@@ -78,6 +86,7 @@ class GraphOptions:
     obstacle_margin: float | None = 0.0
     self_contact: bool = False
     constants: list[str] = field(default_factory=list)
+    quasi_static: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
         if not 1 <= self.levels <= 16:
@@ -423,6 +432,10 @@ class FrameDataset(NumberedSamples):
                 raise ConfigError(f"config key 'graph.contact' must be false for Eulerian data ({source} holds "
                                   "fields on a fixed mesh: no world edges, thesis Table 4.2)")
             self.noise.check(spec, source)
+            if self.options.quasi_static and (not spec.is_lagrangian or self.noise.velocity > 0):
+                raise ConfigError("config key 'graph.quasi_static' needs Lagrangian data and 'noise.velocity' 0 "
+                                  f"(free nodes have no velocity input); {source} holds {spec.describe()}, "
+                                  f"noise.velocity is {self.noise.velocity}")
             self.spec = spec
         elif spec != self.spec:
             raise DatasetError(f"{source} holds {spec.describe()}, but {self.files[0]} holds "
@@ -443,6 +456,15 @@ class FrameDataset(NumberedSamples):
         scenario, positions, velocities = self.scenarios[k], self.positions[k], self.velocities[k]
         pos, velocity = positions[t].copy(), velocities[t].copy()
         target = velocities[t + 1] - velocities[t]
+        if self.options.quasi_static:
+            free = (scenario.node_type == NodeType.FREE)[:, None]
+            velocity = np.where(free, 0.0, velocity)
+            target = np.where(free, velocities[t + 1], target)
+            if noise_seed is not None and self.noise.position > 0:
+                dx = free * np.random.default_rng(noise_seed).normal(0.0, self.noise.position, pos.shape)
+                pos += dx
+                target = target - dx / scenario.frame_dt
+            return pos, velocity, target
         if noise_seed is not None and (self.noise.position > 0 or self.noise.velocity > 0):
             rng = np.random.default_rng(noise_seed)
             free = (scenario.node_type == NodeType.FREE)[:, None]

@@ -109,12 +109,19 @@ class _Track:
         if self.states is not None:
             fields = self.spec.input_values(self.states[t])
             return self.scenario.frame(self.positions[t], self.velocities[t], fields=fields)
-        velocity, kinematic = self.velocities[t], self.scenario.kinematic
+        velocity, kinematic = self._base(t), self.scenario.kinematic
         if kinematic.any():
             velocity = velocity.copy()
             velocity[kinematic] = 0.0 if self.known is None else \
                 (self.known[t + 1][kinematic] - self.positions[t][kinematic]) / self.scenario.frame_dt
         return self.scenario.frame(self.positions[t], velocity)
+
+    def _base(self, t: int) -> np.ndarray:
+        """The velocities frame t's step starts from: the state's, or 0 on free nodes of a
+        quasi-static model (``graph.quasi_static``: the output is their whole velocity)."""
+        if not self.scenario.options.quasi_static:
+            return self.velocities[t]
+        return np.where(self.scenario.kinematic[:, None], self.velocities[t], 0.0)
 
     def advance(self, t: int, change: np.ndarray) -> None:
         """Frame t + 1 from frame t and the model's output (N, node_out) of every scenario node:
@@ -123,7 +130,7 @@ class _Track:
             self._advance_fields(t, change)
             return
         kinematic, dt = self.scenario.kinematic, self.scenario.frame_dt
-        position, velocity = integrate(self.positions[t], self.velocities[t], change, dt)
+        position, velocity = integrate(self.positions[t], self._base(t), change, dt)
         if self.known is not None:
             position[kinematic] = self.known[t + 1][kinematic]
             velocity[kinematic] = (self.known[t + 1][kinematic] - self.positions[t][kinematic]) / dt

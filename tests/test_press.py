@@ -94,6 +94,7 @@ def test_polygon_and_mesh_bodies():
      "params.indenter_size must list 2 positive length(s) for a box indenter, got [0.02]"),
     ({"angle": 90.0}, "params.angle must lie in [-80, 80] degrees from straight down, got 90.0"),
     ({"gap": -0.1}, "params.gap must be >= 0, got -0.1"),
+    ({"pose": "lying"}, "params.pose must be one of ['stable', 'upright'], got 'lying'"),
     ({"char": "AB"}, "params.char must be a single visible character, got 'AB'"),
     ({"polygon": [[0, 0], [1, 0], [0, 1]], "mesh": "x.msh"},
      "params.polygon and params.mesh both give the body; give one of them (or params.char)"),
@@ -104,6 +105,30 @@ def test_bad_parameters_name_the_key(given, message):
     with pytest.raises(ConfigError) as info:
         press.params({**FAST, **given})
     assert str(info.value) == message
+
+
+def test_a_standing_body_keeps_its_pose_and_a_toppling_one_is_turned_onto_its_most_stable_side():
+    from scipy.spatial import ConvexHull
+
+    from datagen.scenes.press import centre_of_mass, stands
+
+    standing = build(char="H", pose="stable").body
+    assert np.array_equal(standing.nodes, build(char="H").body.nodes)
+    corner = [[1.0, 0.0], [0.2, 0.6], [-0.7, 0.5], [-0.6, -0.6], [0.1, -0.9]]  # rests on a corner when upright
+    for given in ({"char": "J"}, {"polygon": corner}):
+        upright, turned = build(**given).body, build(**given, pose="stable").body
+        assert not stands(upright) and stands(turned)
+        edges = upright.cells[:, :2]  # turned and scaled, not deformed: every edge by the same factor
+        ratio = [np.linalg.norm(np.diff(m.nodes[edges], axis=1), axis=-1) for m in (turned, upright)]
+        np.testing.assert_allclose(ratio[0] / ratio[1], (ratio[0] / ratio[1]).mean(), rtol=1e-12)
+        assert np.ptp(turned.nodes, axis=0).max() == pytest.approx(0.12, rel=1e-12)
+        # the hull edge nearest the centre of mass lies on the floor, the centre of mass over it
+        hull = ConvexHull(turned.nodes)
+        c = centre_of_mass(turned)
+        nearest = hull.equations[np.argmax(hull.equations[:, :2] @ c + hull.equations[:, 2])]
+        np.testing.assert_allclose(nearest[:2], [0.0, -1.0], atol=1e-12)
+        on_floor = turned.nodes[np.abs(turned.nodes[:, 1] - turned.nodes[:, 1].min()) < 1e-9, 0]
+        assert len(on_floor) >= 2 and on_floor.min() < c[0] < on_floor.max()
 
 
 def test_a_body_larger_than_the_box_is_refused():

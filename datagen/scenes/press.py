@@ -19,6 +19,9 @@ Gravity points along -y. ``settle_time`` (s): a pre-roll with mass-proportional 
 ``settle_damping`` (1/s) in which the body comes to rest on the floor under gravity before
 frame 0 (the indenter held at its start), so that gravity coming on does not set it ringing;
 ``damping``: mass-proportional damping (1/s) of the nodal velocities during the frames.
+``pose``: ``upright`` sets the body down as given; ``stable`` (:func:`rest_pose`) keeps it so
+where it stands there and otherwise turns it onto the side it rests on most stably, so that no
+body starts out toppling (a J on its hook, a polygon on a corner).
 """
 
 from __future__ import annotations
@@ -42,12 +45,16 @@ DEFAULTS = {
     "body_size": 0.0025, "min_nodes": 0, "mesh_size": 0.0075, "damping": 0.0, "settle_time": 0.0,
     "settle_damping": 400.0,
     "indenter": "disk", "indenter_size": [0.02], "indenter_x": 0.0, "indenter_friction": 0.3, "gap": 0.002,
-    "speed": 0.045, "angle": 0.0, "press_time": 0.2, "hold_time": 0.0,
+    "speed": 0.045, "angle": 0.0, "press_time": 0.2, "hold_time": 0.0, "pose": "upright",
 }
 OUTPUT = {"frames": 40, "frame_interval": 0.01}
 SOLVER = {"transfer": "flip"}
 INDENTER_SIZES = {"disk": 1, "box": 2, "wedge": 2}
 _OPTIONAL = ("polygon", "mesh")
+# pose "stable": a body stays upright when its base (nodes within BASE_TOL x its size of its
+# lowest point) spans at least MIN_BASE x its size and its centre of mass lies over the middle
+# (1 - 2 COM_MARGIN) of the base
+BASE_TOL, MIN_BASE, COM_MARGIN = 0.02, 0.25, 0.2
 
 
 def params(given: dict) -> dict:
@@ -57,7 +64,7 @@ def params(given: dict) -> dict:
     p = check_params(NAME, DEFAULTS, {k: v for k, v in given.items() if k not in optional},
                      positive=("size", "E", "density", "body_size", "mesh_size", "speed", "press_time"),
                      choices={"material": {"linear", "neo_hookean", "fixed_corotated"},
-                              "indenter": set(INDENTER_SIZES)})
+                              "indenter": set(INDENTER_SIZES), "pose": {"upright", "stable"}})
     p.update(optional)
     if p["polygon"] is not None and p["mesh"] is not None:
         raise ConfigError("params.polygon and params.mesh both give the body; give one of them (or params.char)")
@@ -100,7 +107,40 @@ def body_mesh(p: dict) -> Mesh:
         scale = p["size"] / float(np.ptp(coarse.nodes, axis=0).max())
         mesh = shapes.glyph(p["char"], _spacing(p, float(coarse.cell_measures.sum()) * scale**2),
                             height=p["size"] * scale)
-    return place_body(mesh, np.zeros(2), p["size"])
+    return place_body(rest_pose(mesh) if p["pose"] == "stable" else mesh, np.zeros(2), p["size"])
+
+
+def centre_of_mass(mesh: Mesh) -> np.ndarray:
+    """(2,) the centroid of the body's area (uniform density)."""
+    centroids = mesh.nodes[mesh.cells].mean(1)
+    return mesh.cell_measures @ centroids / mesh.cell_measures.sum()
+
+
+def stands(mesh: Mesh) -> bool:
+    """Whether the body stands as it is on a floor below it: a base at least MIN_BASE of its size
+    wide with the centre of mass over the base's middle (module constants)."""
+    size = float(np.ptp(mesh.nodes, axis=0).max())
+    x, y = mesh.nodes.T
+    base = x[y <= y.min() + BASE_TOL * size]
+    a, b = float(base.min()), float(base.max())
+    c = float(centre_of_mass(mesh)[0])
+    return b - a >= MIN_BASE * size and min(c - a, b - c) >= COM_MARGIN * (b - a)
+
+
+def rest_pose(mesh: Mesh) -> Mesh:
+    """The body as it is where it :func:`stands`; otherwise turned about its centre of mass so
+    that the edge of its convex hull nearest the centre of mass faces down (the pose with the
+    lowest centre of mass over a hull edge: the centre of mass always lies over that edge)."""
+    if stands(mesh):
+        return mesh
+    from scipy.spatial import ConvexHull
+
+    c = centre_of_mass(mesh)
+    equations = ConvexHull(mesh.nodes).equations  # outward unit normal n and offset d: n.x + d <= 0 inside
+    normal = equations[int(np.argmax(equations[:, :2] @ c + equations[:, 2])), :2]
+    turn = -math.pi / 2 - math.atan2(normal[1], normal[0])
+    rotation = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
+    return Mesh((mesh.nodes - c) @ rotation.T + c, mesh.cells)
 
 
 def _spacing(p: dict, area: float) -> float:
