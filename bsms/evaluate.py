@@ -84,8 +84,9 @@ def _learned(model, config, trajectories, cache_dir, frames: list[int], options:
     out = []
     for scenario, trajectory, n, result, truth in zip(scenarios, trajectories, frames, results, truths, strict=True):
         if spec.is_lagrangian:
-            metrics = rollout_metrics(result.positions[:, : scenario.n_body], truth[: n + 1], free_nodes(trajectory),
-                                      body_size(trajectory.mesh.nodes), options.bound)
+            free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
+            metrics = rollout_metrics(result.positions[:, : scenario.n_body], truth[: n + 1], free, size, options.bound)
+            metrics["rest_rel_all"] = rest_error(truth[: n + 1], free, size)
         else:
             fields = field_metrics(spec, result.states, truth, free_nodes(trajectory), options.bound)
             main = fields[spec.outputs[0].name]
@@ -95,6 +96,13 @@ def _learned(model, config, trajectories, cache_dir, frames: list[int], options:
         metrics["graph_nodes_ratio"] = float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body
         out.append((metrics, result))
     return out
+
+
+def rest_error(truth: np.ndarray, mask: np.ndarray, size: float) -> float:
+    """The rollout RMSE over all steps, relative to ``size``, of predicting no motion at all
+    (every node kept at frame 0): the error a learned model has to get below to have learned
+    anything (a driven scene where most of the body hardly moves has a small one)."""
+    return rollout_metrics(np.broadcast_to(truth[:1], truth.shape), truth, mask, size)["rel_all"]
 
 
 def _frames(trajectory, options: EvaluateConfig) -> int:
@@ -212,7 +220,9 @@ def _charts(out: Path, results: _Results, frame_interval: float, bound: float) -
                "front": r["pareto_front"]} for r in results.rows]
     field_name = next((r["field"] for r in results.rows if r.get("field")), None)
     scale = f"{field_name} scale" if field_name else "body size"
-    viz.speed_accuracy_chart(points, out / "speed_accuracy.png", ylabel=f"rollout RMSE / {scale} (whole rollout)")
+    rest = next((r["rest_rel_all"] for r in results.rows if "rest_rel_all" in r), None)
+    viz.speed_accuracy_chart(points, out / "speed_accuracy.png", ylabel=f"rollout RMSE / {scale} (whole rollout)",
+                             rest=rest)
     curves = {label: [m["error_curve"] for m in metrics] for label, metrics in results.learned.items()}
     curves.update({label: [r["error_curve"] for r in runs if "error_curve" in r]
                    for label, runs in results.solver.items()
@@ -400,6 +410,15 @@ def _stability(rows: list[dict], bound: float, size: str = "body size") -> list[
     return lines
 
 
+def _rest_lines(rows: list[dict]) -> list[str]:
+    rest = next((r["rest_rel_all"] for r in rows if "rest_rel_all" in r), None)
+    if rest is None:
+        return []
+    return [f"Body at rest (no motion predicted, every free node kept where it is at frame 0): RMSE all / body size "
+            f"{_fmt(rest)} on these trajectories (dotted line on the chart); a model above it has learned less than "
+            "nothing.", ""]
+
+
 def _write_report(run_dir: Path, heading: list[str], results: _Results, bound: float, training, spec) -> Path:
     size = "body size" if spec.is_lagrangian else f"{spec.outputs[0].name} scale"
     fields = ["## RMSE per field", "", _field_table(results.rows), ""] if not spec.is_lagrangian else []
@@ -410,6 +429,7 @@ def _write_report(run_dir: Path, heading: list[str], results: _Results, bound: f
         "settings are the honest baseline a surrogate must beat." if results.solver else
         "No solver ran (--no-solver, or evaluate.solver: []; converted datasets have no scene to re-run): the "
         "chart shows the learned models alone.", "", *pareto.front_lines(results.rows, GROUND_TRUTH), "",
+        *_rest_lines(results.rows),
         "## Error against time", "", "![rollout error](evaluation/error_vs_step.png)", "",
         "## Stability", "", *_stability(results.rows, bound, size),
     ]

@@ -319,7 +319,7 @@ def summarize(metrics: list[dict]) -> dict:
     Eulerian rollouts the same per field (``fields``)."""
     out = {"trajectories": len(metrics), "unstable": sum(m["unstable_step"] is not None for m in metrics)}
     for key in ("rmse_1", "rmse_50", "rmse_all", "rel_1", "rel_50", "rel_all", "seconds_per_step",
-                "seconds_per_sim_second", "graph_nodes_ratio", "scale"):
+                "seconds_per_sim_second", "graph_nodes_ratio", "scale", "rest_rel_all"):
         values = np.array([m[key] for m in metrics if key in m], dtype=float)
         if len(values):
             out[key] = float(np.mean(values))

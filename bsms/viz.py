@@ -87,14 +87,16 @@ def error_curves(curves: dict[str, list[np.ndarray]], frame_dt: float, path, bou
     return _save(fig, path)
 
 
-def speed_accuracy_chart(points: list[dict], path, ylabel: str = "rollout RMSE / body size") -> Path:
+def speed_accuracy_chart(points: list[dict], path, ylabel: str = "rollout RMSE / body size",
+                         rest: float | None = None) -> Path:
     """Wall seconds per simulated second (x) against rollout error (y), one labelled point per method,
     with the Pareto front (:mod:`bsms.pareto`) as a step line.
 
     points: dicts with ``label``, ``kind`` ("learned", "solver", or "ground_truth": the solver
     at the data's own settings, zero error, drawn as a vertical line at its cost),
     ``seconds_per_sim_second``, ``error`` (inf or nan when unstable or failed), ``unstable``
-    (count), and optionally ``front`` (on the Pareto front) and ``dominated`` (bool).
+    (count), and optionally ``front`` (on the Pareto front) and ``dominated`` (bool). ``rest``:
+    the error of predicting no motion at all, drawn as a dotted horizontal line.
     Dominated points are hollow; unstable ones sit at the top edge, hollow. The step line is
     the lowest error reachable at each cost: it steps down at every front point (to the
     bottom edge at the ground truth's cost when the ground truth is on the front).
@@ -103,6 +105,9 @@ def speed_accuracy_chart(points: list[dict], path, ylabel: str = "rollout RMSE /
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     finite = [p["error"] for p in points
               if p["kind"] != "ground_truth" and math.isfinite(p["error"]) and p["error"] > 0]
+    if rest is not None and math.isfinite(rest) and rest > 0:
+        finite.append(rest)
+        ax.axhline(rest, color="0.4", linestyle=":", linewidth=1.2, label="body at rest (no motion predicted)")
     ceiling = 3 * max(finite) if finite else 1.0
     floor = min(finite) / 3 if finite else 1e-6
     notes = [_chart_point(ax, p, floor, ceiling) for p in points]
@@ -134,6 +139,7 @@ def _chart_legend(ax, points: list[dict]) -> None:
     if any(p.get("dominated") or not math.isfinite(p["error"]) for p in points if p["kind"] != "ground_truth"):
         handles.append(Line2D([], [], marker="s", ls="", markerfacecolor="none", markeredgecolor="gray",
                               label="hollow: dominated or unstable"))
+    handles += [h for h in ax.get_lines() if h.get_label() == "body at rest (no motion predicted)"]
     ax.legend(handles=handles, fontsize=7, loc="lower left")
 
 

@@ -224,3 +224,20 @@ def test_coarser_body_is_compared_at_the_ground_truth_nodes():
     inside = np.linalg.norm(fine.nodes, axis=1) < 0.45  # the coarse polygon covers these
     expected = np.stack([moved(fine.nodes, t) for t in times[:, 0, 0]])
     np.testing.assert_allclose(out[:, inside], expected[:, inside], rtol=0, atol=1e-15)
+
+
+def test_the_body_at_rest_baseline_is_the_error_of_predicting_no_motion(quickstart_run):
+    from bsms.rollout import body_size
+
+    run, _, details = quickstart_run
+    expected = []
+    for name in details["trajectories"]:
+        trajectory = load(name)
+        x = trajectory.positions[: details["learned"]["quickstart"][0]["steps"] + 1]
+        free = trajectory.node_type == NodeType.FREE
+        curve = np.sqrt(np.mean(np.sum((x[1:, free] - x[0, free]) ** 2, axis=-1), axis=-1))
+        expected.append(np.sqrt(np.mean(curve**2)) / body_size(trajectory.mesh.nodes))
+    row = details["rows"][0]
+    assert row["rest_rel_all"] == pytest.approx(np.mean(expected), rel=1e-12)
+    assert row["rest_rel_all"] > 0.01, "the tiny letters fall: no motion is far off"
+    assert f"RMSE all / body size {row['rest_rel_all']:.3g} on these trajectories" in (run / "report.md").read_text()
