@@ -220,9 +220,8 @@ def _charts(out: Path, results: _Results, frame_interval: float, bound: float) -
                "front": r["pareto_front"]} for r in results.rows]
     field_name = next((r["field"] for r in results.rows if r.get("field")), None)
     scale = f"{field_name} scale" if field_name else "body size"
-    rest = next((r["rest_rel_all"] for r in results.rows if "rest_rel_all" in r), None)
     viz.speed_accuracy_chart(points, out / "speed_accuracy.png", ylabel=f"rollout RMSE / {scale} (whole rollout)",
-                             rest=rest)
+                             rest=_rest(results.rows))
     curves = {label: [m["error_curve"] for m in metrics] for label, metrics in results.learned.items()}
     curves.update({label: [r["error_curve"] for r in runs if "error_curve" in r]
                    for label, runs in results.solver.items()
@@ -410,8 +409,13 @@ def _stability(rows: list[dict], bound: float, size: str = "body size") -> list[
     return lines
 
 
+def _rest(rows: list[dict]) -> float | None:
+    """The body-at-rest error of the evaluated trajectories (every learned row holds the same)."""
+    return next((r["rest_rel_all"] for r in rows if "rest_rel_all" in r), None)
+
+
 def _rest_lines(rows: list[dict]) -> list[str]:
-    rest = next((r["rest_rel_all"] for r in rows if "rest_rel_all" in r), None)
+    rest = _rest(rows)
     if rest is None:
         return []
     return [f"Body at rest (no motion predicted, every free node kept where it is at frame 0): RMSE all / body size "

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from .. import shapes
 from ..config import ConfigError
@@ -133,8 +134,6 @@ def rest_pose(mesh: Mesh) -> Mesh:
     lowest centre of mass over a hull edge: the centre of mass always lies over that edge)."""
     if stands(mesh):
         return mesh
-    from scipy.spatial import ConvexHull
-
     c = centre_of_mass(mesh)
     equations = ConvexHull(mesh.nodes).equations  # outward unit normal n and offset d: n.x + d <= 0 inside
     normal = equations[int(np.argmax(equations[:, :2] @ c + equations[:, 2])), :2]
