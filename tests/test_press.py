@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from datagen import simulate
 from datagen.config import ConfigError
@@ -31,14 +32,18 @@ def test_body_rests_on_the_floor_with_its_largest_extent_the_size():
 
 @pytest.mark.parametrize("shape", sorted(INDENTER_SIZES))
 def test_the_indenter_starts_gap_above_the_body_under_it_and_comes_back(shape):
+    """Over a sloping roof the indenter's underside (not its lowest point) comes within exactly
+    ``gap`` of the body, straight above it: lifted by the gap, the body touches the indenter."""
     sizes = {"disk": [0.02], "box": [0.02, 0.01], "wedge": [0.02, 0.03]}[shape]
-    scene = build(char="A", indenter=shape, indenter_size=sizes, indenter_x=0.01, gap=0.003, speed=0.05,
-                  angle=30.0, press_time=0.2, hold_time=0.1)
+    scene = build(polygon=[[0, 0], [1, 0], [0.5, 0.6]], indenter=shape, indenter_size=sizes, indenter_x=0.025,
+                  gap=0.003, speed=0.05, angle=30.0, press_time=0.2, hold_time=0.1)
     collider = scene.colliders[0]
     start = collider.path.position(0.0)
-    under = np.abs(scene.body.nodes[:, 0] - start[0]) <= sizes[0]
-    assert start[1] + collider.lowest() - scene.body.nodes[under, 1].max() == pytest.approx(0.003, abs=1e-15)
-    assert start[0] == pytest.approx(0.12 + 0.01, abs=1e-15)
+    nodes = torch.tensor(scene.body.nodes)
+    lifted, _ = collider.signed_distance(nodes + torch.tensor([0.0, 0.003], dtype=nodes.dtype), 0.0)
+    assert float(lifted.min()) == pytest.approx(0.0, abs=1e-12)
+    assert float(collider.signed_distance(nodes, 0.0)[0].min()) > 0.0
+    assert start[0] == pytest.approx(0.12 + 0.025, abs=1e-15)
     bottom = collider.path.position(0.2)
     np.testing.assert_allclose(bottom - start, 0.05 * 0.2 * np.array([math.sin(math.pi / 6), -math.cos(math.pi / 6)]),
                                atol=1e-15)

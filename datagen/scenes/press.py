@@ -9,8 +9,8 @@ hundreds of substeps per frame, while the motion is slow and smooth -- the setti
 learned simulator pays (DeepMind's DEFORMINGPLATE is the same kind of scene).
 
 The indenter (``indenter``: ``disk`` (size [radius]), ``box`` (half extents [hx, hy]) or
-``wedge`` (apex down, [half width, height])) starts ``gap`` above the highest body point under
-it, at ``indenter_x`` from the body's centre, moves for ``press_time`` at ``speed`` along a
+``wedge`` (apex down, [half width, height])) starts with its underside ``gap`` above the body
+where they come closest (vertically), at ``indenter_x`` from the body's centre, moves for ``press_time`` at ``speed`` along a
 line ``angle`` degrees from straight down, waits ``hold_time`` and goes back the same way at
 the same speed. It acts on the background nodes as separating contact with Coulomb friction
 ``indenter_friction`` (:mod:`datagen.mpm.colliders`); its surface, moved along its path, is
@@ -156,8 +156,11 @@ def indenter(p: dict, body: Mesh) -> Collider:
     half_width = sizes[0]
     center = (body.nodes.min(0) + body.nodes.max(0)) / 2
     x = float(center[0] + p["indenter_x"])
-    under = np.abs(body.nodes[:, 0] - x) <= half_width
-    top = float(body.nodes[under, 1].max() if under.any() else body.nodes[:, 1].max())
+    dx = body.nodes[:, 0] - x
+    under = np.abs(dx) <= half_width
+    # the lowest point may start as low as the body lets the indenter's underside come, less the gap
+    top = float((body.nodes[under, 1] - underside(p["indenter"], sizes, dx[under])).max() if under.any()
+                else body.nodes[:, 1].max())
     probe = Collider(p["indenter"], sizes, Path(np.zeros(1), np.zeros((1, 2))), p["indenter_friction"])
     start = np.array([x, top + p["gap"] - probe.lowest()])
     angle = math.radians(p["angle"])
@@ -166,6 +169,17 @@ def indenter(p: dict, body: Mesh) -> Collider:
     times = np.array([0.0, t1, t2, t2 + t1]) if p["hold_time"] > 0 else np.array([0.0, t1, 2 * t1])
     points = np.stack([start, end, end, start]) if p["hold_time"] > 0 else np.stack([start, end, start])
     return Collider(p["indenter"], sizes, Path(times, points), p["indenter_friction"])
+
+
+def underside(shape: str, sizes: tuple, dx: np.ndarray) -> np.ndarray:
+    """Height of the indenter's lower surface above its lowest point at horizontal offsets dx
+    (|dx| <= its half width) from its centre: box 0, disk r - sqrt(r^2 - dx^2), wedge |dx| h / w."""
+    dx = np.abs(np.asarray(dx, float))
+    if shape == "box":
+        return np.zeros_like(dx)
+    if shape == "disk":
+        return sizes[0] - np.sqrt(np.maximum(sizes[0] ** 2 - dx**2, 0.0))
+    return dx * sizes[1] / sizes[0]
 
 
 def build(p: dict) -> Scene:
