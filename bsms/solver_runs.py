@@ -35,10 +35,13 @@ SOLVER_SETTINGS = {
     "coarse_mesh_1.5": "solver, background mesh 1.5x coarser",
     "coarse_mesh": "solver, background mesh 2x coarser",
     "adaptive_coarse_mesh": "solver, adaptive reference, background mesh 2x coarser",
+    "total": "solver, total reference (A-ULMPM, one kernel)",
     "fewer_particles": "solver, body mesh 1.5x coarser",
     "large_step": "solver, time step 2x larger",
     "stability_limit": "solver, largest stable time step",
 }
+# the reference configuration of the settings that change it
+_REFERENCE = {"adaptive": "adaptive", "adaptive_coarse_mesh": "adaptive", "total": "total"}
 # background mesh coarsening (params.mesh_size x factor) of the settings that have one
 _MESH_FACTOR = {"coarse_mesh_1.5": 1.5, "coarse_mesh": 2.0, "adaptive_coarse_mesh": 2.0}
 # stability_limit: the time step x these factors of the data's, tried in order until a run fails
@@ -48,7 +51,7 @@ STABILITY_FACTORS = (2.0, 4.0, 8.0, 16.0)
 
 def setting_config(base: dict, setting: str, frames: int, dt: float | None = None) -> dict | None:
     """The generating config ``base`` changed for ``setting`` (None when the scene lacks the knob,
-    or for ``adaptive*`` when the data already used the adaptive reference configuration).
+    or for ``adaptive*`` / ``total`` when the data already used that reference configuration).
 
     ``dt``: the time step (s) to try, for ``stability_limit`` only (required there).
     """
@@ -57,10 +60,11 @@ def setting_config(base: dict, setting: str, frames: int, dt: float | None = Non
     config = copy.deepcopy(base)
     config["output"] = {**config.get("output", {}), "frames": frames, "step_diagnostics": False}
     params, solver = config.setdefault("params", {}), config.setdefault("solver", {})
-    if setting.startswith("adaptive"):
-        if solver.get("reference", SOLVER_DEFAULTS["reference"]) == "adaptive":
+    reference = _REFERENCE.get(setting)
+    if reference is not None:
+        if solver.get("reference", SOLVER_DEFAULTS["reference"]) == reference:
             return None
-        solver["reference"] = "adaptive"
+        solver["reference"] = reference
     if setting in _MESH_FACTOR:
         if "mesh_size" not in params:
             return None
@@ -148,9 +152,9 @@ def run_solver(trajectory, setting: str, frames: int, bound: float, threads: int
     else:
         config = setting_config(trajectory.config, setting, frames)
         if config is None:
-            adaptive = trajectory.config.get("solver", {}).get("reference") == "adaptive"
-            metrics = {"skipped": "the data already used the adaptive reference configuration"
-                       if adaptive and setting.startswith("adaptive") else f"the scene has no knob for {setting}"}
+            used = trajectory.config.get("solver", {}).get("reference")
+            metrics = {"skipped": f"the data already used the {used} reference configuration"
+                       if used == _REFERENCE.get(setting) else f"the scene has no knob for {setting}"}
         else:
             metrics = _measure(trajectory, config, frames, bound, threads, ground_truth=setting == "ground_truth")
     return {**metrics, "setting": setting}

@@ -199,7 +199,7 @@ def test_unknown_solver_setting_names_the_key():
         load_config({"name": "x", "dataset": {"config": "d.yaml"}, "evaluate": {"solver": ["coarse", "large_step"]}})
     assert str(info.value) == ("unknown config key 'evaluate.solver.coarse'; 'evaluate.solver' accepts: "
                                "adaptive, adaptive_coarse_mesh, coarse_mesh, coarse_mesh_1.5, fewer_particles, "
-                               "ground_truth, large_step, stability_limit")
+                               "ground_truth, large_step, stability_limit, total")
     old = load_config({"name": "x", "dataset": {"config": "d.yaml"},
                        "evaluate": {"solver": ["coarse_mesh", "fewer_particles", "large_step"]}})
     assert old.evaluate.solver == ["coarse_mesh", "fewer_particles", "large_step"], "old configs keep working"

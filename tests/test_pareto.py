@@ -121,6 +121,7 @@ def test_setting_config_changes_exactly_one_knob():
         "adaptive_coarse_mesh": changed(params={"mesh_size": 0.2}, solver={"reference": "adaptive"}),
         "fewer_particles": changed(params={"body_size": 1.5 * 0.05}),
         "large_step": changed(solver={"cfl": 0.6}),
+        "total": changed(solver={"reference": "total"}),
     }
     assert set(expected) | {"stability_limit"} == set(SOLVER_SETTINGS)
     for setting, config in expected.items():
@@ -144,6 +145,12 @@ def test_settings_without_their_knob_are_skipped():
     adaptive = copy.deepcopy(BASE)
     adaptive["solver"]["reference"] = "adaptive"
     assert setting_config(adaptive, "adaptive", 6) is None and setting_config(adaptive, "adaptive_coarse_mesh", 6) is None
+    assert setting_config(adaptive, "total", 6)["solver"]["reference"] == "total"
+    total = copy.deepcopy(BASE)
+    total["solver"]["reference"] = "total"
+    assert setting_config(total, "total", 6) is None and setting_config(total, "adaptive", 6) is not None
+    assert solver_runs.run_solver(SimpleNamespace(config=total), "total", 6, 0.5) == {
+        "skipped": "the data already used the total reference configuration", "setting": "total"}
     no_mesh = copy.deepcopy(BASE)
     del no_mesh["params"]["mesh_size"]
     for setting in ("coarse_mesh", "coarse_mesh_1.5", "adaptive_coarse_mesh"):

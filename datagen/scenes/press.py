@@ -10,11 +10,12 @@ learned simulator pays (DeepMind's DEFORMINGPLATE is the same kind of scene).
 
 The indenter (``indenter``: ``disk`` (size [radius]), ``box`` (half extents [hx, hy]) or
 ``wedge`` (apex down, [half width, height])) starts with its underside ``gap`` above the body
-where they come closest (vertically), at ``indenter_x`` from the body's centre, moves for ``press_time`` at ``speed`` along a
-line ``angle`` degrees from straight down, waits ``hold_time`` and goes back the same way at
-the same speed. It acts on the background nodes as separating contact with Coulomb friction
-``indenter_friction`` (:mod:`datagen.mpm.colliders`); its surface, moved along its path, is
-obstacle geometry a model sees, next to the box's walls (separating, friction ``friction``).
+where they come closest (vertically), at ``indenter_x`` from the body's centre, moves for
+``press_time`` at ``speed`` along a line ``angle`` degrees from straight down, waits
+``hold_time`` and goes back the same way at the same speed. It acts on the background nodes
+as separating contact with Coulomb friction ``indenter_friction`` (:mod:`datagen.mpm.colliders`);
+its surface, moved along its path, is obstacle geometry a model sees, next to the box's walls
+(separating, friction ``friction``).
 Gravity points along -y. ``settle_time`` (s): a pre-roll with mass-proportional damping
 ``settle_damping`` (1/s) in which the body comes to rest on the floor under gravity before
 frame 0 (the indenter held at its start), so that gravity coming on does not set it ringing;
