@@ -37,11 +37,11 @@ from tqdm import tqdm
 from bsms import pareto, viz
 from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
-from bsms.data import Scenario
-from bsms.fields import eulerian_state, initial_velocity, spec_of, world_positions
-from bsms.rollout import body_size, field_metrics, peak_memory_mb, rollout_metrics, rollouts, summarize
+from bsms.fields import eulerian_state, spec_of, world_positions
+from bsms.learned_rollouts import learned_rollouts
+from bsms.rollout import peak_memory_mb, summarize
 from bsms.run import EvaluateConfig, convert_fix, dataset_folder, load_model, resolve_device, split_files
-from bsms.solver_runs import SOLVER_SETTINGS, frame_dt, free_nodes, run_solver, setting_label
+from bsms.solver_runs import SOLVER_SETTINGS, frame_dt, run_solver, setting_label
 from datagen.atomic import atomic_path
 from datagen.config import output_folder
 from datagen.dataset import DatasetError, load
@@ -64,47 +64,6 @@ class _Results:
 
 
 # ----------------------------------------------------------------------------- learned models
-def _learned(model, config, trajectories, cache_dir, frames: list[int], options: EvaluateConfig,
-             device) -> list[tuple[dict, object]]:
-    """(metrics, rollout) of ``model`` on each of ``trajectories``, rolled out as one batch."""
-    spec = model.spec
-    scenarios = [Scenario.from_trajectory(t, config.graph, cache_dir, spec=spec) for t in trajectories]
-    if spec.is_lagrangian:
-        truths = [world_positions(spec, t) for t in trajectories]
-        known = [s.positions(w[: n + 1], None if t.obstacle_positions is None else t.obstacle_positions[: n + 1])
-                 for s, w, n, t in zip(scenarios, truths, frames, trajectories, strict=True)]
-        initial = [s.full(initial_velocity(spec, t, w)[None], 0.0)[0]
-                   for s, t, w in zip(scenarios, trajectories, truths, strict=True)]
-        results = rollouts(model, scenarios, [k[0] for k in known], initial, frames, known, device=device)
-    else:
-        truths = [eulerian_state(spec, t)[: n + 1] for t, n in zip(trajectories, frames, strict=True)]
-        results = rollouts(model, scenarios, [s.rest_pos for s in scenarios],
-                           [np.zeros_like(s.rest_pos) for s in scenarios], frames, device=device,
-                           initial_states=[truth[0] for truth in truths], known_states=truths)
-    out = []
-    for scenario, trajectory, n, result, truth in zip(scenarios, trajectories, frames, results, truths, strict=True):
-        if spec.is_lagrangian:
-            free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
-            metrics = rollout_metrics(result.positions[:, : scenario.n_body], truth[: n + 1], free, size, options.bound)
-            metrics["rest_rel_all"] = rest_error(truth[: n + 1], free, size)
-        else:
-            fields = field_metrics(spec, result.states, truth, free_nodes(trajectory), options.bound)
-            main = fields[spec.outputs[0].name]
-            metrics = {**main, "body_size": main["scale"], "field": spec.outputs[0].name, "fields": fields}
-        metrics["seconds_per_step"] = result.seconds_per_step
-        metrics["seconds_per_sim_second"] = result.seconds_per_step / scenario.frame_dt
-        metrics["graph_nodes_ratio"] = float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body
-        out.append((metrics, result))
-    return out
-
-
-def rest_error(truth: np.ndarray, mask: np.ndarray, size: float) -> float:
-    """The rollout RMSE over all steps, relative to ``size``, of predicting no motion at all
-    (every node kept at frame 0): the error a learned model has to get below to have learned
-    anything (a driven scene where most of the body hardly moves has a small one)."""
-    return rollout_metrics(np.broadcast_to(truth[:1], truth.shape), truth, mask, size)["rel_all"]
-
-
 def _frames(trajectory, options: EvaluateConfig) -> int:
     available = len(trajectory.times) - 1
     return available if options.steps is None else min(options.steps, available)
@@ -159,8 +118,8 @@ def _roll_out(results: _Results, methods, trajectories, cache_dir: Path, options
         batch = trajectories[first: first + options.batch]
         frames = [_frames(trajectory, options) for trajectory in batch]
         for label, model, config in methods:
-            for k, (metrics, result) in enumerate(_learned(model, config, batch, cache_dir, frames, options, device),
-                                                  start=first):
+            scored = learned_rollouts(model, config.graph, batch, cache_dir, frames, options.bound, device)
+            for k, (metrics, result) in enumerate(scored, start=first):
                 results.learned[label].append(metrics)
                 if label == methods[0][0] and k < options.gifs:
                     results.pictures.append(_pictures(out, k, trajectories[k], result, frames[k - first],

@@ -163,7 +163,12 @@ class TrainConfig:
     passed on detached), ``through`` (the mean of every step's loss, with gradients through the
     predicted states into the later steps' inputs and targets). unroll_warmup: optimiser steps
     of one-step training (on the same samples) before unrolling starts. Normalisers learn from
-    step 0 only; the validation RMSE stays one-step."""
+    step 0 only.
+
+    validation: what ``valid_rmse`` (and so ``best.pt``) measures: ``one_step``, the one-step
+    RMSE over ``valid_samples`` samples; ``rollout``, the RMSE over all steps of rolling the
+    model out from frame 0 on every validation trajectory (m; Lagrangian data only), the measure
+    a learned simulator is used by (one-step error ranks checkpoints poorly where errors pile up)."""
 
     steps: int = 10_000
     batch_size: int = 2
@@ -180,6 +185,7 @@ class TrainConfig:
     unroll: int = 1
     unroll_gradient: Literal["last", "all", "through"] = "last"
     unroll_warmup: int = 0
+    validation: Literal["one_step", "rollout"] = "one_step"
 
     def validate(self, prefix: str) -> None:
         _at_least(self, prefix, 1, ("steps", "batch_size", "normalizer_steps", "log_every", "valid_every",

@@ -38,6 +38,7 @@ from tqdm import tqdm
 from bsms.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_checkpoint
 from bsms.config import ConfigError, load, to_dict
 from bsms.data import FrameDataset
+from bsms.learned_rollouts import learned_rollouts
 from bsms.models.precision import cpu_has_bf16
 from bsms.run import (
     Config,
@@ -50,6 +51,7 @@ from bsms.run import (
 )
 from bsms.unroll import UnrollBatch, UnrollSamples, collate, unrolled_loss
 from datagen.atomic import atomic_path
+from datagen.dataset import load as load_trajectory
 
 __all__ = ["Trainer", "TrainingDiverged", "lr_factor", "METRICS_FIELDS"]
 
@@ -169,6 +171,10 @@ class Trainer:
                                       cache_dir=cache, progress=progress)
         self.valid_set = FrameDataset(split_files(self.dataset_folder, "valid"), config.graph, cache_dir=cache,
                                       progress=progress)
+        if config.train.validation == "rollout" and not self.valid_set.spec.is_lagrangian:
+            raise ConfigError("config key 'train.validation' is 'rollout', but the dataset holds Eulerian fields "
+                              f"({self.valid_set.spec.describe()}); validate them one step at a time (one_step)")
+        self._valid_trajectories = None  # loaded at the first rollout validation
         self.samples = UnrollSamples(self.train_set, config.train.unroll)  # (trajectory, t) with t + K <= T - 1
         if len(self.samples) < config.train.batch_size:
             raise ConfigError(f"config key 'train.batch_size' ({config.train.batch_size}) exceeds the "
@@ -377,8 +383,11 @@ class Trainer:
     @torch.no_grad()
     def validate(self) -> float:
         """One-step RMSE over the validation samples of the free nodes' next position (m; Lagrangian
-        data) or first output field (the data's units, e.g. velocity; Eulerian data)."""
+        data) or first output field (the data's units, e.g. velocity; Eulerian data); with
+        ``train.validation: rollout`` the rollout RMSE over all steps and validation trajectories."""
         self.model.eval()
+        if self.config.train.validation == "rollout":
+            return self._validate_rollouts()
         n = len(self.valid_set)
         picks = np.unique(np.linspace(0, n - 1, min(n, self.config.train.valid_samples)).round().astype(int))
         squared, count = 0.0, 0
@@ -394,6 +403,18 @@ class Trainer:
             squared += float(error[batch.loss_mask].square().sum())
             count += int(batch.loss_mask.sum())
         return math.sqrt(squared / max(count, 1))
+
+    def _validate_rollouts(self) -> float:
+        """RMSE (m) over every step of every validation trajectory, each rolled out from frame 0
+        (one batch); inf when a rollout goes non-finite."""
+        if self._valid_trajectories is None:
+            self._valid_trajectories = [load_trajectory(path) for path in split_files(self.dataset_folder, "valid")]
+        trajectories = self._valid_trajectories
+        frames = [len(t.times) - 1 for t in trajectories]
+        scored = learned_rollouts(self.model, self.config.graph, trajectories, self.dataset_folder / "hierarchies",
+                                  frames, device=self.device)
+        squares = [metrics["rmse_all"] ** 2 for metrics, _ in scored]
+        return float(math.sqrt(np.mean(squares))) if np.isfinite(squares).all() else math.inf
 
     # -- the loop
     def _after_divergence(self, exc: TrainingDiverged) -> TrainingDiverged:

@@ -312,6 +312,17 @@ def test_options_that_do_not_fit_the_data(converted, name, override, words):
         FrameDataset(split_files(converted[name], "train"), config.graph, config.noise)
 
 
+def test_rollout_validation_refuses_eulerian_data(converted, tmp_path):
+    config = load_config(ROOT / "configs/deepmind/cylinder_flow.yaml",
+                         _run_config("cylinder_flow", converted["cylinder_flow"], tmp_path, "bsms_gnn",
+                                     "train.validation=rollout"))
+    fields = FrameDataset(split_files(converted["cylinder_flow"], "valid")[:1], config.graph).spec.describe()
+    with pytest.raises(ConfigError) as info:
+        Trainer(config)
+    assert str(info.value) == ("config key 'train.validation' is 'rollout', but the dataset holds Eulerian fields "
+                               f"({fields}); validate them one step at a time (one_step)")
+
+
 def test_no_solver_and_no_infer_for_converted_runs(cylinder_run, tmp_path):
     _, config, _ = load_model(cylinder_run)
     config.evaluate.solver = ["ground_truth"]

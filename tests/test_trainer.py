@@ -128,6 +128,35 @@ def test_overfits_a_tiny_dataset(tiny_dataset, folder, tmp_path, model, ratio, o
     assert metrics[-1].split(",")[-1] != "", "the last step is validated"
 
 
+def test_rollout_validation_keeps_the_checkpoint_whose_rollouts_are_best(tiny_dataset, folder, tmp_path, one_thread):
+    """train.validation: rollout logs the RMSE over every step of the validation trajectories'
+    rollouts; best.pt is the step with the least, and evaluating it on the validation split
+    (a fresh process's path: saved, reloaded, rolled out one by one) gives that number."""
+    import json
+
+    from bsms.evaluate import evaluate
+    from bsms.run import EvaluateConfig
+
+    trainer = Trainer(load_config(config_dict(tiny_dataset, tmp_path, train={"validation": "rollout"})),
+                      dataset_folder=folder)
+    trainer.fit()
+    rows = (tmp_path / "tiny" / "metrics.csv").read_text().splitlines()[1:]
+    logged = [float(r.split(",")[-1]) for r in rows if r.split(",")[-1]]
+    assert len(logged) == 2 and np.isfinite(logged).all()
+    evaluate(tmp_path / "tiny", options=EvaluateConfig(split="valid", solver=[], gifs=0, batch=1), progress=False)
+    learned = json.loads((tmp_path / "tiny" / "evaluation" / "metrics.json").read_text())["learned"]["tiny"]
+    assert len(learned) == len(split_files(folder, "valid")) >= 1
+    assert np.sqrt(np.mean([m["rmse_all"] ** 2 for m in learned])) == pytest.approx(min(logged), rel=1e-5)
+    one_step = Trainer(load_config(config_dict(tiny_dataset, tmp_path / "one")), dataset_folder=folder)
+    one_step.model.load_state_dict(trainer.model.state_dict())
+    assert one_step.validate() < 0.5 * trainer.validate(), "a rollout's error exceeds the one-step error"
+
+
+def test_an_unknown_validation_mode_names_the_key(tiny_dataset, tmp_path):
+    with pytest.raises(ConfigError, match="config key 'train.validation' must be one of"):
+        load_config(config_dict(tiny_dataset, tmp_path, train={"validation": "rollouts"}))
+
+
 def test_resume_continues_exactly(tiny_dataset, folder, tmp_path, one_thread):
     whole = Trainer(load_config(config_dict(tiny_dataset, tmp_path / "a")), dataset_folder=folder)
     whole.fit()

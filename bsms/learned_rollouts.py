@@ -1,0 +1,59 @@
+"""Learned rollouts on stored trajectories, scored against them: what ``bsms.evaluate`` reports
+per trajectory and what training validates on when ``train.validation`` is ``rollout``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bsms.data import GraphOptions, Scenario
+from bsms.fields import eulerian_state, initial_velocity, world_positions
+from bsms.rollout import DEFAULT_BOUND, body_size, field_metrics, rollout_metrics, rollouts
+from bsms.solver_runs import free_nodes
+
+__all__ = ["learned_rollouts", "rest_error"]
+
+
+def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames: list[int],
+                     bound: float = DEFAULT_BOUND, device="cpu") -> list[tuple[dict, object]]:
+    """(metrics, :class:`~bsms.rollout.Rollout`) of ``model`` on each of ``trajectories``, rolled
+    out from frame 0 for ``frames`` steps each as one batch; graphs built by ``graph``, their
+    hierarchies cached in ``cache_dir``. Metrics: :func:`~bsms.rollout.rollout_metrics` (with
+    ``bound``, the relative error that marks a rollout unstable) and ``rest_rel_all``
+    (:func:`rest_error`) for Lagrangian data, the first output field's
+    :func:`~bsms.rollout.field_metrics` for Eulerian data; timing in both."""
+    spec = model.spec
+    scenarios = [Scenario.from_trajectory(t, graph, cache_dir, spec=spec) for t in trajectories]
+    if spec.is_lagrangian:
+        truths = [world_positions(spec, t) for t in trajectories]
+        known = [s.positions(w[: n + 1], None if t.obstacle_positions is None else t.obstacle_positions[: n + 1])
+                 for s, w, n, t in zip(scenarios, truths, frames, trajectories, strict=True)]
+        initial = [s.full(initial_velocity(spec, t, w)[None], 0.0)[0]
+                   for s, t, w in zip(scenarios, trajectories, truths, strict=True)]
+        results = rollouts(model, scenarios, [k[0] for k in known], initial, frames, known, device=device)
+    else:
+        truths = [eulerian_state(spec, t)[: n + 1] for t, n in zip(trajectories, frames, strict=True)]
+        results = rollouts(model, scenarios, [s.rest_pos for s in scenarios],
+                           [np.zeros_like(s.rest_pos) for s in scenarios], frames, device=device,
+                           initial_states=[truth[0] for truth in truths], known_states=truths)
+    out = []
+    for scenario, trajectory, n, result, truth in zip(scenarios, trajectories, frames, results, truths, strict=True):
+        if spec.is_lagrangian:
+            free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
+            metrics = rollout_metrics(result.positions[:, : scenario.n_body], truth[: n + 1], free, size, bound)
+            metrics["rest_rel_all"] = rest_error(truth[: n + 1], free, size)
+        else:
+            fields = field_metrics(spec, result.states, truth, free_nodes(trajectory), bound)
+            main = fields[spec.outputs[0].name]
+            metrics = {**main, "body_size": main["scale"], "field": spec.outputs[0].name, "fields": fields}
+        metrics["seconds_per_step"] = result.seconds_per_step
+        metrics["seconds_per_sim_second"] = result.seconds_per_step / scenario.frame_dt
+        metrics["graph_nodes_ratio"] = float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body
+        out.append((metrics, result))
+    return out
+
+
+def rest_error(truth: np.ndarray, mask: np.ndarray, size: float) -> float:
+    """The rollout RMSE over all steps, relative to ``size``, of predicting no motion at all
+    (every node kept at frame 0): the error a learned model has to get below to have learned
+    anything (a driven scene where most of the body hardly moves has a small one)."""
+    return rollout_metrics(np.broadcast_to(truth[:1], truth.shape), truth, mask, size)["rel_all"]
