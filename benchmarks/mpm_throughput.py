@@ -2,9 +2,14 @@
 
 An elastic block, spinning and drifting so that particles cross cells, sits in a box meshed
 with element size about twice the particle spacing (the grid of the structured B-spline solver has
-that spacing too). Every step recomputes the kernel (cell search included). If ``taichi`` is
-importable, a structured MLS-MPM written in taichi runs on the same particle counts and the
-ratio ours / taichi is printed (taichi is never a dependency).
+that spacing too). ``umls`` recomputes the kernel every step (cell search included); in 3D the
+A-ULMPM ``total`` and ``adaptive`` reference configurations, which keep it, are timed too. A
+structured quadratic MLS-MPM written in taichi (``taichi_mpm.py``, its CPU backend, the same
+threads) runs on the same particle counts in the benchmark's own environment: this interpreter
+if it has taichi, else a venv made at ``--taichi-env`` on first use (taichi is never a
+dependency of the package). Ends with exactly
+``throughput 3D: UMLS U M/s, taichi T M/s`` (particle-steps per second, kernel rebuilt every
+step, the largest 3D size, same run).
 
 By default glibc's malloc is told to keep freed memory (large mmap and trim thresholds, the
 same as exporting MALLOC_MMAP_THRESHOLD_ / MALLOC_TRIM_THRESHOLD_): torch on CPU allocates
@@ -21,31 +26,23 @@ import ctypes
 import importlib.util
 import json
 import math
+import subprocess
+import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
+from taichi_mpm import block
 
 from datagen import shapes
 from datagen.layer import with_extra_layer
 from datagen.mpm import Model, State, cfl_time_step, step
 from datagen.mpm.kernels import Grid, MeshTables
 from datagen.mpm.materials import NeoHookean
-from datagen.scenes.base import lattice
 
 MATERIAL = NeoHookean(1e4, 0.3, 1.0)
-
-
-def _block(n_particles: int, dim: int):
-    """Particles filling the centre of a unit box: positions, velocities, volumes, spacing."""
-    side = 0.6
-    spacing = side / n_particles ** (1.0 / dim)
-    x, _, step_ = lattice(np.full(dim, 0.2), np.full(dim, 0.8), spacing)
-    centred = x - 0.5
-    v = np.zeros_like(x)
-    v[:, 0], v[:, 1] = -2.0 * centred[:, 1] + 0.3, 2.0 * centred[:, 0]  # spin + drift: cells are crossed
-    return x, v, np.full(len(x), float(np.prod(step_))), float(step_.mean())
 
 
 def umls_model(dim: int, spacing: float, device) -> Model:
@@ -83,9 +80,13 @@ def time_steps(model: Model, state: State, steps: int, repeats: int = 3) -> floa
 
 
 def measure(kind: str, dim: int, n: int, steps: int, device) -> dict:
-    x, v, vol, spacing = _block(n, dim)
+    """kind: ``bspline``, ``umls`` (kernel rebuilt every step), ``umls total`` or ``umls adaptive``
+    (A-ULMPM reference configurations: the kernel kept while the reference holds)."""
+    x, v, vol, spacing = block(n, dim)
     start = time.perf_counter()
-    model = (umls_model if kind == "umls" else bspline_model)(dim, spacing, device)
+    model = bspline_model(dim, spacing, device) if kind == "bspline" else umls_model(dim, spacing, device)
+    if kind.startswith("umls "):
+        model = replace(model, reference=kind.split()[1])
     setup = time.perf_counter() - start
     state = State.at_rest_shape(x, v, vol, MATERIAL.density, device=device)
     per_step = time_steps(model, state, steps)
@@ -93,74 +94,27 @@ def measure(kind: str, dim: int, n: int, steps: int, device) -> dict:
             "setup_s": setup, "ms_per_step": 1e3 * per_step, "particle_steps_per_s": len(x) / per_step}
 
 
-def _taichi_program(ti, x0: np.ndarray, v0: np.ndarray, volume: float, h: float):
-    """Fields and one substep of structured quadratic MLS-MPM (APIC, Neo-Hookean) in taichi."""
-    p, dim = x0.shape
-    res = int(round(1.0 / h)) + 1
-    mu, lam, mass = MATERIAL.mu, MATERIAL.lam, MATERIAL.density * volume
-    x, v = ti.Vector.field(dim, float, p), ti.Vector.field(dim, float, p)
-    C, F = ti.Matrix.field(dim, dim, float, p), ti.Matrix.field(dim, dim, float, p)
-    grid_v, grid_m = ti.Vector.field(dim, float, (res,) * dim), ti.field(float, (res,) * dim)
-    x.from_numpy(x0)
-    v.from_numpy(v0)
-    F.from_numpy(np.tile(np.eye(dim), (p, 1, 1)))
-
-    @ti.kernel
-    def substep(dt: float):
-        for I in ti.grouped(grid_m):
-            grid_v[I], grid_m[I] = ti.Vector.zero(float, dim), 0.0
-        for q in x:  # P2G
-            base = (x[q] / h - 0.5).cast(int)
-            fx = x[q] / h - base
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-            eye = ti.Matrix.identity(float, dim)
-            tau = mu * (F[q] @ F[q].transpose() - eye) + lam * ti.log(F[q].determinant()) * eye
-            affine = -dt * volume * 4.0 / h**2 * tau + mass * C[q]
-            for off in ti.static(ti.grouped(ti.ndrange(*((3,) * dim)))):
-                weight = 1.0
-                for a in ti.static(range(dim)):
-                    weight *= w[off[a]][a]
-                grid_v[base + off] += weight * (mass * v[q] + affine @ ((off - fx) * h))
-                grid_m[base + off] += weight * mass
-        for I in ti.grouped(grid_m):
-            if grid_m[I] > 0:
-                grid_v[I] /= grid_m[I]
-        for q in x:  # G2P
-            base = (x[q] / h - 0.5).cast(int)
-            fx = x[q] / h - base
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-            new_v, new_C = ti.Vector.zero(float, dim), ti.Matrix.zero(float, dim, dim)
-            for off in ti.static(ti.grouped(ti.ndrange(*((3,) * dim)))):
-                weight = 1.0
-                for a in ti.static(range(dim)):
-                    weight *= w[off[a]][a]
-                new_v += weight * grid_v[base + off]
-                new_C += 4.0 / h**2 * weight * grid_v[base + off].outer_product((off - fx) * h)
-            v[q], C[q] = new_v, new_C
-            x[q] += dt * new_v
-            F[q] = (ti.Matrix.identity(float, dim) + dt * new_C) @ F[q]
-
-    return substep
+def taichi_python(env: Path) -> Path:
+    """An interpreter that has taichi: this one if it imports taichi, else the benchmark's own
+    environment ``env`` (a venv made there and ``pip install taichi`` into it on first use)."""
+    if importlib.util.find_spec("taichi") is not None:
+        return Path(sys.executable)
+    python = env / "bin" / "python"
+    if not python.is_file():
+        print(f"making the taichi environment {env} (python -m venv; pip install taichi numpy)", flush=True)
+        subprocess.run([sys.executable, "-m", "venv", str(env)], check=True)
+        subprocess.run([str(python), "-m", "pip", "install", "--quiet", "taichi", "numpy"], check=True)
+    return python
 
 
-def taichi_rate(n: int, dim: int, steps: int) -> float | None:
-    """Particle-steps/s of a structured quadratic MLS-MPM in taichi, or None without taichi."""
-    try:
-        import taichi as ti
-    except ImportError:
-        return None
-    ti.init(arch=ti.cpu, default_fp=ti.f64)
-    x0, v0, vol, spacing = _block(n, dim)
-    h = 2.0 * spacing
-    substep = _taichi_program(ti, x0, v0, float(vol[0]), h)
-    dt = 0.3 * h / (MATERIAL.wave_speed + 2.0)
-    substep(dt)  # compile
-    ti.sync()
-    start = time.perf_counter()
-    for _ in range(steps):
-        substep(dt)
-    ti.sync()
-    return len(x0) * steps / (time.perf_counter() - start)
+def taichi_rate(python: Path, n: int, dim: int, steps: int, threads: int) -> dict:
+    """taichi_mpm.py's measurement (structured quadratic MLS-MPM on the same block) in ``python``."""
+    out = subprocess.run([str(python), str(Path(__file__).with_name("taichi_mpm.py")), "--particles", str(n),
+                          "--dim", str(dim), "--steps", str(steps), "--threads", str(threads)],
+                         capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"the taichi measurement failed in {python} (exit {out.returncode}):\n{out.stderr[-2000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def keep_freed_memory() -> bool:
@@ -181,41 +135,45 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", type=Path, default=Path("runs/mpm_throughput"))
+    parser.add_argument("--taichi-env", type=Path, default=Path("runs/taichi-env"),
+                        help="the benchmark's own environment for taichi (made on first use)")
+    parser.add_argument("--no-taichi", action="store_true", help="skip the taichi comparison")
     parser.add_argument("--default-malloc", action="store_true", help="leave glibc malloc settings alone")
     args = parser.parse_args()
+    if 3 not in args.dims:
+        parser.error("--dims must include 3: the last line reports the 3D throughput")
     tuned = False if args.default_malloc else keep_freed_memory()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    rows = []
     print(f"torch threads: {torch.get_num_threads()}, device: {device}, malloc keeps freed memory: {tuned}")
-    has_taichi = importlib.util.find_spec("taichi") is not None
-    if not has_taichi:
-        print("taichi is not installed: the taichi comparison is skipped (pip install taichi to run it)")
-    elif device.type != "cpu":
-        print("the taichi comparison runs on the CPU only: skipped on", device)
-    print(f"{'kernel':8s} {'dim':>3s} {'particles':>9s} {'nodes':>7s} {'ms/step':>8s} {'M p-steps/s':>11s} "
+    python = None if args.no_taichi else taichi_python(args.taichi_env)
+    print(f"{'kernel':18s} {'dim':>3s} {'particles':>9s} {'nodes':>7s} {'ms/step':>8s} {'M p-steps/s':>11s} "
           f"{'vs bspline':>10s}")
+    rows, taichi = [], []
     for dim in args.dims:
         for n in args.sizes:
-            pair = {kind: measure(kind, dim, n, args.steps, device) for kind in ("bspline", "umls")}
-            umls, bspline = pair["umls"]["particle_steps_per_s"], pair["bspline"]["particle_steps_per_s"]
-            pair["umls"]["ratio_umls_over_bspline"] = umls / bspline
-            rate = taichi_rate(n, dim, args.steps) if has_taichi and device.type == "cpu" else None
-            if rate is not None:
-                pair["umls"]["ratio_umls_over_taichi"] = pair["umls"]["particle_steps_per_s"] / rate
-                pair["bspline"]["taichi_particle_steps_per_s"] = rate
+            kinds = ("bspline", "umls", *(("umls total", "umls adaptive") if dim == 3 else ()))
+            pair = {kind: measure(kind, dim, n, args.steps, device) for kind in kinds}
             for kind, row in pair.items():
-                ratio = row.get("ratio_umls_over_bspline", 1.0)
-                print(f"{kind:8s} {dim:3d} {row['particles']:9d} {row['nodes']:7d} {row['ms_per_step']:8.1f} "
-                      f"{row['particle_steps_per_s'] / 1e6:11.3f} {ratio:10.2f}", flush=True)
+                row["ratio_over_bspline"] = row["particle_steps_per_s"] / pair["bspline"]["particle_steps_per_s"]
+                print(f"{kind:18s} {dim:3d} {row['particles']:9d} {row['nodes']:7d} {row['ms_per_step']:8.1f} "
+                      f"{row['particle_steps_per_s'] / 1e6:11.3f} {row['ratio_over_bspline']:10.2f}", flush=True)
                 rows.append(row)
-            if rate is not None:
-                print(f"{'taichi':8s} {dim:3d} {n:9d} {'':7s} {'':8s} {rate / 1e6:11.3f}   ours/taichi "
-                      f"{pair['umls']['ratio_umls_over_taichi']:.3f}")
+            if python is not None:
+                t = taichi_rate(python, n, dim, args.steps, args.threads)
+                taichi.append(t)
+                print(f"{'taichi ' + t['taichi']:18s} {dim:3d} {t['particles']:9d} {'':7s} {t['ms_per_step']:8.1f} "
+                      f"{t['particle_steps_per_s'] / 1e6:11.3f}   umls/taichi "
+                      f"{pair['umls']['particle_steps_per_s'] / t['particle_steps_per_s']:.3f}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    summary = {"threads": args.threads, "malloc_keeps_freed_memory": tuned, "taichi_installed": has_taichi,
-               "rows": rows}
+    summary = {"threads": args.threads, "device": str(device), "malloc_keeps_freed_memory": tuned, "rows": rows,
+               "taichi": taichi}
     (args.out / "results.json").write_text(json.dumps(summary, indent=1))
+    largest = max(r["particles"] for r in rows if r["dim"] == 3 and r["kind"] == "umls")
+    umls = next(r for r in rows if r["dim"] == 3 and r["kind"] == "umls" and r["particles"] == largest)
+    ti_3d = next((t for t in taichi if t["dim"] == 3 and t["particles"] == largest), None)
+    ti_text = "n/a" if ti_3d is None else f"{ti_3d['particle_steps_per_s'] / 1e6:.3g}"
+    print(f"throughput 3D: UMLS {umls['particle_steps_per_s'] / 1e6:.3g} M/s, taichi {ti_text} M/s")
 
 
 if __name__ == "__main__":
