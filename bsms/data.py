@@ -18,13 +18,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from bsms.augment import trajectories
 from bsms.config import ConfigError
 from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, type_codes, world_positions
 from bsms.graph import bistride_levels
 from bsms.graph.frames import SubHierarchy
 from bsms.graph.obstacles import ObstacleReach, Subdivision, facet_edges, subdivide_obstacles
 from bsms.level_graph import FrameArrays, LevelGraph, level_graph
-from datagen.dataset import DatasetError, load
+from datagen.dataset import DatasetError
 from datagen.trajectory import NodeType
 
 __all__ = [
@@ -388,11 +389,12 @@ class FrameDataset(NumberedSamples):
     states (:mod:`bsms.fields`). ``spec``: the field spec of the
     files (they must share one). Items are addressed by an integer, or by ``(index,
     noise_seed)`` to add the training noise of ``noise`` drawn from that seed, so the noise of
-    a sample does not depend on which process or batch draws it.
+    a sample does not depend on which process or batch draws it. ``mirror``: each file also
+    enters reflected by x -> -x (:mod:`bsms.augment`), after it.
     """
 
     def __init__(self, files, options: GraphOptions, noise: NoiseOptions | None = None, cache_dir=None,
-                 progress: bool = False):
+                 progress: bool = False, mirror: bool = False):
         self.files = [str(f) for f in files]
         if not self.files:
             raise ValueError("FrameDataset needs at least one trajectory file")
@@ -402,10 +404,10 @@ class FrameDataset(NumberedSamples):
         self.velocities: list[np.ndarray] = []
         self.states: list[np.ndarray] = []
         self.spec: FieldSpec | None = None
-        for path in tqdm(self.files, desc="graphs", unit="traj", disable=not progress):
-            trajectory, source = load(path), f"trajectory file {path}"
+        for trajectory, source in tqdm(trajectories(self.files, mirror), desc="graphs", unit="traj",
+                                       total=len(self.files) * (2 if mirror else 1), disable=not progress):
             if len(trajectory.times) < 2:
-                raise ValueError(f"trajectory file {path} has {len(trajectory.times)} frame(s); training needs >= 2")
+                raise ValueError(f"{source} has {len(trajectory.times)} frame(s); training needs >= 2")
             spec = self._spec(trajectory, source)
             scenario = Scenario.from_trajectory(trajectory, options, cache_dir, source=source, spec=spec)
             self.scenarios.append(scenario)

@@ -168,7 +168,9 @@ class TrainConfig:
     validation: what ``valid_rmse`` (and so ``best.pt``) measures: ``one_step``, the one-step
     RMSE over ``valid_samples`` samples; ``rollout``, the RMSE over all steps of rolling the
     model out from frame 0 on every validation trajectory (m; Lagrangian data only), the measure
-    a learned simulator is used by (one-step error ranks checkpoints poorly where errors pile up)."""
+    a learned simulator is used by (one-step error ranks checkpoints poorly where errors pile up).
+    mirror: every training trajectory also enters reflected by x -> -x (:mod:`bsms.augment`;
+    scenes symmetric under it: gravity along y, isotropic materials)."""
 
     steps: int = 10_000
     batch_size: int = 2
@@ -186,6 +188,7 @@ class TrainConfig:
     unroll_gradient: Literal["last", "all", "through"] = "last"
     unroll_warmup: int = 0
     validation: Literal["one_step", "rollout"] = "one_step"
+    mirror: bool = False
 
     def validate(self, prefix: str) -> None:
         _at_least(self, prefix, 1, ("steps", "batch_size", "normalizer_steps", "log_every", "valid_every",

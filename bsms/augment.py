@@ -1,0 +1,62 @@
+"""Training-set augmentation by mirroring (``train.mirror``).
+
+The solver's scenes are symmetric under the reflection x -> -x whenever gravity has no x part
+and the materials are isotropic (every family here): the mirror image of a trajectory, its body,
+walls and moving obstacles reflected together, is another exact trajectory of the same physics.
+A learned model is not mirror-equivariant by construction (its MLPs see signed offsets), so
+the reflected copies are new samples: a C and a reflected C are different shapes to it, and a
+push from the left teaches the push from the right. Only relative quantities enter the graphs,
+so where the reflection puts the scene does not matter.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from bsms.config import ConfigError
+from datagen.dataset import load
+from datagen.mesh import Mesh
+
+__all__ = ["mirrored", "trajectories"]
+
+
+def mirrored(trajectory, source: str = "the trajectory"):
+    """``trajectory`` reflected by x -> -x: body nodes, positions, velocities and obstacle
+    geometry reflected, cells and obstacle facets re-ordered so that they keep their orientation.
+    Per-frame diagnostics are dropped (their vectors would need reflecting; training reads none).
+
+    Raises ConfigError for trajectories of converted datasets (their fields are kept as the
+    source stores them) and for scenes whose gravity has an x part (no longer symmetric)."""
+    if trajectory.fields is not None:
+        raise ConfigError(f"config key 'train.mirror': {source} holds a converted dataset's fields; mirroring "
+                          "applies to the solver's trajectories")
+    gravity = np.atleast_1d(np.asarray(trajectory.config.get("params", {}).get("gravity", 0.0), float))
+    if gravity.size > 1 and gravity[0] != 0.0:
+        raise ConfigError(f"config key 'train.mirror': {source} has gravity {gravity.tolist()} with an x part, so "
+                          "its scene is not symmetric under x -> -x; train without it")
+    flip = np.ones(trajectory.mesh.dim)
+    flip[0] = -1.0
+    reorder = np.arange(trajectory.mesh.dim + 1)
+    reorder[[-2, -1]] = reorder[[-1, -2]]  # swapping two vertices undoes the reflection's orientation flip
+    obstacles = {}
+    if trajectory.obstacle_nodes is not None:
+        facets = np.asarray(trajectory.obstacle_facets)
+        obstacles = {"obstacle_nodes": np.asarray(trajectory.obstacle_nodes) * flip,
+                     "obstacle_facets": facets[:, ::-1].copy() if facets.shape[1] == 2 else facets[:, [0, 2, 1]]}
+    if trajectory.obstacle_positions is not None:
+        obstacles["obstacle_positions"] = np.asarray(trajectory.obstacle_positions) * flip
+    return dataclasses.replace(
+        trajectory, mesh=Mesh(trajectory.mesh.nodes * flip, trajectory.mesh.cells[:, reorder]),
+        positions=trajectory.positions * flip, velocities=trajectory.velocities * flip, diagnostics={},
+        step_diagnostics=None, **obstacles)
+
+
+def trajectories(files, mirror: bool = False):
+    """(trajectory, source) of every file, each followed by its mirror image when ``mirror``."""
+    for path in files:
+        trajectory, source = load(path), f"trajectory file {path}"
+        yield trajectory, source
+        if mirror:
+            yield mirrored(trajectory, source), f"{source}, mirrored"
