@@ -59,9 +59,11 @@ def _rms(values: np.ndarray) -> float:
 
 
 def _train_pair(train_case: fc.Case, h: float, levels: int, dx: float, settings: dict, batches: int = 1) -> dict:
-    """BSMS-GNN and MS-GNN-Grid trained on ``train_case`` (split in ``batches`` by graph) to one loss."""
+    """BSMS-GNN and MS-GNN-Grid trained on ``train_case`` (split in ``batches`` by graph) to one loss:
+    the grid model first, to the target or its step budget; BSMS-GNN then stops at the loss the
+    grid model reached (the target, or above it), so that neither is compared better trained."""
     out, target = {}, settings["target"]
-    for kind in ("bsms", "grid"):  # the grid stops at the loss BSMS-GNN reached, if that is above the target
+    for kind in ("grid", "bsms"):
         graphs = int(train_case.graph.max()) + 1
         parts = [_subset(train_case, range(b, graphs, batches)) for b in range(batches)]
         prepared = [fc.prepare(part, kind, h, levels) for part in parts]

@@ -4,10 +4,13 @@ Generates the test split of the pretrained model's dataset where it is missing (
 config is the one beside the weights, ``dataset.json``), rolls the model out from frame 0 of
 every test trajectory, and runs the MPM solver at the data's settings (the ground truth, the
 speed-up's baseline) and at every cheaper setting of :data:`bsms.solver_runs.SOLVER_SETTINGS`
--- A-ULMPM ``adaptive`` where the data did not use it, background meshes 1.5x and 2x coarser,
-fewer particles, larger time steps up to the stability limit -- all timed in this one process
-on one thread. ``bsms.evaluate`` computes the metrics, the Pareto front and which settings
-dominate which.
+-- A-ULMPM ``adaptive`` and ``total`` where the data used another reference, background meshes
+1.5x and 2x coarser, fewer particles, larger time steps up to the stability limit -- every point
+timed on one thread. ``--workers K`` (default 2) spreads the work over K one-thread processes:
+the learned rollouts are one job, each trajectory's solver runs another, so every point is
+timed while the other workers run (the same footing for all; 1: everything in this process,
+one after another, on an otherwise idle machine). ``bsms.evaluate`` computes the metrics, the
+Pareto front and which settings dominate which.
 
 Writes ``OUT/run/evaluation/`` (metrics.json, speed_accuracy.md/.csv/.png, error curves) and,
 with ``--docs``, copies the table and chart to ``docs/surrogate_vs_solver.md`` and
@@ -20,7 +23,7 @@ model's rollout RMSE over all steps and free nodes relative to the body size (me
 trajectories); U of N: unstable rollouts; the settings (names of SOLVER_SETTINGS) that are
 both at least as fast and at least as accurate, one of them strictly.
 
-    python benchmarks/surrogate_vs_solver.py [--pretrained pretrained/press2d] [--trajectories N]
+    python benchmarks/surrogate_vs_solver.py [--pretrained pretrained/press2d] [--trajectories N] [--workers K]
 """
 
 from __future__ import annotations
@@ -82,6 +85,8 @@ def main(argv=None) -> None:
     parser.add_argument("--trajectories", type=int, default=None, help="test trajectories (default: all)")
     parser.add_argument("--solver", nargs="+", default=list(SOLVER_SETTINGS), choices=list(SOLVER_SETTINGS))
     parser.add_argument("--gifs", type=int, default=2)
+    parser.add_argument("--workers", type=int, default=2,
+                        help="one-thread processes the learned rollouts and the solver runs share (default 2)")
     parser.add_argument("--docs", action="store_true", help="copy the table and chart into docs/")
     args = parser.parse_args(argv)
     os.chdir(ROOT)
@@ -92,7 +97,7 @@ def main(argv=None) -> None:
     dconfig = json.loads((run / "dataset.json").read_text())
     ensure_test_split(dconfig, Path(config.dataset.root))  # the run's dataset root, from the repository root
     options = EvaluateConfig(split="test", trajectories=args.trajectories, solver=args.solver, gifs=args.gifs,
-                             threads=1, batch=1)
+                             threads=1, batch=1, workers=args.workers)
     options.validate("evaluate")
     result = evaluate(run, options=options, progress=True)
     evaluation = run / "evaluation"

@@ -26,7 +26,9 @@ import copy
 import csv
 import json
 import math
+import multiprocessing
 import sys
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -130,14 +132,57 @@ def _roll_out(results: _Results, methods, trajectories, cache_dir: Path, options
 def _run_solvers(results: _Results, trajectories, options: EvaluateConfig, progress: bool) -> None:
     """Every solver setting on every trajectory, on the threads the learned models were timed on;
     results.solver keyed by each setting's label (:func:`bsms.solver_runs.setting_label`)."""
-    runs = {setting: [] for setting in options.solver}
-    for trajectory in tqdm(trajectories, desc="solver runs", unit="traj", disable=not progress or not options.solver):
-        done = {}
-        for setting in options.solver:
-            done[setting] = run_solver(trajectory, setting, _frames(trajectory, options), options.bound,
-                                       threads=torch.get_num_threads(), done=done)
-            runs[setting].append(done[setting])
+    done = [_solver_runs(trajectory, options) for trajectory in
+            tqdm(trajectories, desc="solver runs", unit="traj", disable=not progress or not options.solver)]
+    _collect_solver(results, done, options)
+
+
+def _solver_runs(trajectory, options: EvaluateConfig) -> dict:
+    """setting -> metrics of every solver setting on one trajectory (in order: later settings reuse
+    earlier ones, :func:`bsms.solver_runs.run_solver`)."""
+    done = {}
+    for setting in options.solver:
+        done[setting] = run_solver(trajectory, setting, _frames(trajectory, options), options.bound,
+                                   threads=torch.get_num_threads(), done=done)
+    return done
+
+
+def _collect_solver(results: _Results, done: list[dict], options: EvaluateConfig) -> None:
+    runs = {setting: [d[setting] for d in done] for setting in options.solver}
     results.solver = {setting_label(setting, metrics): metrics for setting, metrics in runs.items()}
+
+
+# ----------------------------------------------------------------------------- worker pool
+def _in_pool(results: _Results, runs, files, cache_dir: Path, options: EvaluateConfig, out: Path,
+             progress: bool) -> None:
+    """The learned rollouts (one job) and each trajectory's solver runs (one job each) in a pool
+    of ``options.workers`` processes on ``options.threads`` threads each (spawned: no state shared)."""
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(options.workers, mp_context=context, initializer=_worker_threads,
+                             initargs=(options.threads,)) as pool:
+        learned = pool.submit(_learned_job, [str(r) for r in runs], [str(f) for f in files], str(cache_dir),
+                              options, str(out))
+        jobs = [pool.submit(_solver_job, str(f), options) for f in files] if options.solver else []
+        done = [job.result() for job in tqdm(jobs, desc="solver runs", unit="traj", disable=not progress)]
+        results.learned, results.memory, results.pictures = learned.result()
+    _collect_solver(results, done, options)
+
+
+def _worker_threads(threads: int | None) -> None:
+    if threads is not None:
+        torch.set_num_threads(threads)
+
+
+def _learned_job(runs: list[str], files: list[str], cache_dir: str, options: EvaluateConfig, out: str):
+    model, config, _ = load_model(Path(runs[0]))
+    methods = _methods(model, config, [Path(r) for r in runs[1:]])
+    results = _Results({label: [] for label, _, _ in methods}, {})
+    _roll_out(results, methods, [load(f) for f in files], Path(cache_dir), options, Path(out), False)
+    return results.learned, results.memory, results.pictures
+
+
+def _solver_job(file: str, options: EvaluateConfig) -> dict:
+    return _solver_runs(load(file), options)
 
 
 # ----------------------------------------------------------------------------- summary
@@ -226,8 +271,11 @@ def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateCon
     out = run_dir / "evaluation"
     out.mkdir(parents=True, exist_ok=True)
     results = _Results({label: [] for label, _, _ in methods}, {SOLVER_SETTINGS[s]: [] for s in options.solver})
-    _roll_out(results, methods, trajectories, folder / "hierarchies", options, out, progress)
-    _run_solvers(results, trajectories, options, progress)
+    if options.workers > 1:
+        _in_pool(results, (run_dir, *compare), files, folder / "hierarchies", options, out, progress)
+    else:
+        _roll_out(results, methods, trajectories, folder / "hierarchies", options, out, progress)
+        _run_solvers(results, trajectories, options, progress)
     results.rows = _summary_rows(results)
     _write_tables(out, results.rows, _columns(model.spec))
     _charts(out, results, frame_dt(trajectories[0]), options.bound)
@@ -418,6 +466,8 @@ def main(argv=None) -> int:
     parser.add_argument("--no-solver", action="store_true", help="skip the solver runs (learned models only)")
     parser.add_argument("--device", default=None, help="auto, cpu or cuda[:N]")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads of the learned models")
+    parser.add_argument("--workers", type=int, default=None, help="processes to spread the work over")
+    parser.add_argument("--solver", nargs="+", default=None, help="solver settings (default: the run's)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     try:
@@ -426,7 +476,7 @@ def main(argv=None) -> int:
             resolve_device(args.device, "--device")
         output_folder(args.run_dir, "the run folder (the report is written there)")
         options = copy.deepcopy(config.evaluate)
-        for key in ("split", "steps", "trajectories", "device", "threads"):
+        for key in ("split", "steps", "trajectories", "device", "threads", "workers", "solver"):
             if getattr(args, key) is not None:
                 setattr(options, key, getattr(args, key))
         if args.no_solver:

@@ -210,7 +210,11 @@ class EvaluateConfig:
     point is timed alike whatever solver.threads the data was made with (metrics.json records
     both); small graphs run fastest on one thread. batch: trajectories rolled out together, one
     model call per step on the batch of their graphs (a rollout's time per step is its share
-    of the batch's step; 1: each rollout alone).
+    of the batch's step; 1: each rollout alone). workers: processes the work is spread over
+    (each on ``threads`` threads): 1 runs the learned rollouts and then every solver run in this
+    process; K > 1 makes the learned rollouts one job and each trajectory's solver runs another
+    in a pool of K, so that every point, learned or solver, is timed while the other workers run
+    (the same footing for all, and about K times sooner on K cores).
     """
 
     enabled: bool = True
@@ -223,13 +227,14 @@ class EvaluateConfig:
     device: str = "auto"
     threads: int | None = 1
     batch: int = 8
+    workers: int = 1
 
     def validate(self, prefix: str) -> None:
         if self.split not in ("train", "valid", "test"):
             raise ConfigError(f"config key '{prefix}.split' must be train, valid or test, got {self.split!r}")
         _at_least(self, prefix, 1, ("trajectories", "steps", "threads"), optional=True)
         _at_least(self, prefix, 0, ("gifs",))
-        _at_least(self, prefix, 1, ("batch",))
+        _at_least(self, prefix, 1, ("batch", "workers"))
         if self.bound <= 0:
             raise ConfigError(f"config key '{prefix}.bound' must be positive, got {self.bound}")
         # runs saved before the setting was renamed list 'reference'

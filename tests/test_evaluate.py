@@ -184,6 +184,29 @@ def test_evaluate_learned_only_with_fewer_steps(quickstart_run):
     assert three_steps["error_curve"] == six_steps[:3], "a shorter rollout is the start of the longer one"
 
 
+def test_a_worker_pool_measures_the_same_errors(quickstart_run):
+    """evaluate.workers: 2 runs the learned rollouts and each trajectory's solver runs as jobs of a
+    pool; every error is the one-process evaluation's, bit for bit (only timings differ)."""
+    run, _, _ = quickstart_run
+    config = load_config(run / "config.yaml")
+    options = config.evaluate
+    options.solver, options.gifs = ["ground_truth", "large_step"], 1
+    alone = {row["label"]: row for row in evaluate(run, options=options, progress=False)["rows"]}
+    alone_details = json.loads((run / "evaluation" / "metrics.json").read_text())
+    options.workers = 2
+    pooled = {row["label"]: row for row in evaluate(run, options=options, progress=False)["rows"]}
+    details = json.loads((run / "evaluation" / "metrics.json").read_text())
+    assert set(pooled) == set(alone) == {"quickstart", GROUND_TRUTH, SOLVER_SETTINGS["large_step"]}
+    for label, row in pooled.items():
+        for key in ("rmse_1", "rmse_all", "rel_all", "unstable"):
+            assert row[key] == alone[label][key], (label, key)
+        assert row["seconds_per_sim_second"] > 0 and row["speedup"] > 0
+    for a, b in zip(details["learned"]["quickstart"], alone_details["learned"]["quickstart"], strict=True):
+        assert a["error_curve"] == b["error_curve"]
+    assert pooled[GROUND_TRUTH]["max_difference_from_stored"] == 0.0
+    assert (run / "evaluation" / "rollout_0.gif").is_file()
+
+
 def test_evaluate_cli_errors(tmp_path):
     result = subprocess.run([sys.executable, "-m", "bsms.evaluate", str(tmp_path / "missing")],
                             capture_output=True, text=True, cwd=ROOT, timeout=120)
