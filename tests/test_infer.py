@@ -181,3 +181,22 @@ def test_a_pretrained_export_infers_like_its_run(run_2d, tmp_path):
     assert np.abs(moved[0][2] - moved[0][0]).max() > 0  # the bodies moved
     np.testing.assert_array_equal(moved[0], moved[1])
     assert export_main([str(tmp_path / "missing"), str(tmp_path / "x")]) == 2
+
+
+def test_the_committed_pretrained_press_model_infers_on_a_new_shape(tmp_path):
+    """pretrained/press2d is in the repository (weights-only loadable, a few MB) and infers from a
+    fresh clone: a shape it never saw, placed as the family's bodies are, rolls out finite."""
+    import torch
+
+    folder = Path(__file__).resolve().parents[1] / "pretrained" / "press2d"
+    weights = folder / "checkpoints" / "best.pt"
+    assert weights.is_file() and weights.stat().st_size < 10 * 2**20
+    state = torch.load(weights, map_location="cpu", weights_only=True)
+    assert "optimizer" not in state and state["config"]["model"]["name"] == "bsms_gnn"
+    dataset = json.loads((folder / "dataset.json").read_text())
+    assert dataset["family"] == "press" and dataset["solver"]["reference"] == "eulerian"
+    mesh_file = write(shapes.polygon(np.array([[0.0, 0.0], [1.0, 0.0], [0.8, 0.7], [0.2, 0.9]]), size=0.1),
+                      tmp_path / "quad.msh")
+    assert main([str(folder), "--mesh", str(mesh_file), "--steps", "3", "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["finite"] is True and summary["steps"] == 3
