@@ -38,19 +38,24 @@ def mirrored(trajectory, source: str = "the trajectory"):
                           "its scene is not symmetric under x -> -x; train without it")
     flip = np.ones(trajectory.mesh.dim)
     flip[0] = -1.0
-    reorder = np.arange(trajectory.mesh.dim + 1)
-    reorder[[-2, -1]] = reorder[[-1, -2]]  # swapping two vertices undoes the reflection's orientation flip
     obstacles = {}
     if trajectory.obstacle_nodes is not None:
-        facets = np.asarray(trajectory.obstacle_facets)
         obstacles = {"obstacle_nodes": np.asarray(trajectory.obstacle_nodes) * flip,
-                     "obstacle_facets": facets[:, ::-1].copy() if facets.shape[1] == 2 else facets[:, [0, 2, 1]]}
+                     "obstacle_facets": _swap_last_two(np.asarray(trajectory.obstacle_facets))}
     if trajectory.obstacle_positions is not None:
         obstacles["obstacle_positions"] = np.asarray(trajectory.obstacle_positions) * flip
     return dataclasses.replace(
-        trajectory, mesh=Mesh(trajectory.mesh.nodes * flip, trajectory.mesh.cells[:, reorder]),
+        trajectory, mesh=Mesh(trajectory.mesh.nodes * flip, _swap_last_two(trajectory.mesh.cells)),
         positions=trajectory.positions * flip, velocities=trajectory.velocities * flip, diagnostics={},
         step_diagnostics=None, **obstacles)
+
+
+def _swap_last_two(simplices: np.ndarray) -> np.ndarray:
+    """Cells or facets with their last two vertices swapped: undoes the orientation flip of a
+    reflection (a segment reversed, a triangle or tetrahedron re-wound)."""
+    order = np.arange(simplices.shape[1])
+    order[[-2, -1]] = order[[-1, -2]]
+    return simplices[:, order]
 
 
 def trajectories(files, mirror: bool = False):

@@ -14,15 +14,17 @@ __all__ = ["learned_rollouts", "rest_error"]
 
 
 def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames: list[int],
-                     bound: float = DEFAULT_BOUND, device="cpu") -> list[tuple[dict, object]]:
+                     bound: float = DEFAULT_BOUND, device="cpu", scenarios=None) -> list[tuple[dict, object]]:
     """(metrics, :class:`~bsms.rollout.Rollout`) of ``model`` on each of ``trajectories``, rolled
     out from frame 0 for ``frames`` steps each as one batch; graphs built by ``graph``, their
     hierarchies cached in ``cache_dir``. Metrics: :func:`~bsms.rollout.rollout_metrics` (with
     ``bound``, the relative error that marks a rollout unstable) and ``rest_rel_all``
     (:func:`rest_error`) for Lagrangian data, the first output field's
-    :func:`~bsms.rollout.field_metrics` for Eulerian data; timing in both."""
+    :func:`~bsms.rollout.field_metrics` for Eulerian data; timing in both. ``scenarios``: the
+    trajectories' scenarios if already built with ``graph`` (e.g. a dataset's), else built here."""
     spec = model.spec
-    scenarios = [Scenario.from_trajectory(t, graph, cache_dir, spec=spec) for t in trajectories]
+    if scenarios is None:
+        scenarios = [Scenario.from_trajectory(t, graph, cache_dir, spec=spec) for t in trajectories]
     if spec.is_lagrangian:
         truths = [world_positions(spec, t) for t in trajectories]
         known = [s.positions(w[: n + 1], None if t.obstacle_positions is None else t.obstacle_positions[: n + 1])

@@ -412,7 +412,7 @@ class Trainer:
         trajectories = self._valid_trajectories
         frames = [len(t.times) - 1 for t in trajectories]
         scored = learned_rollouts(self.model, self.config.graph, trajectories, self.dataset_folder / "hierarchies",
-                                  frames, device=self.device)
+                                  frames, device=self.device, scenarios=self.valid_set.scenarios)
         squares = [metrics["rmse_all"] ** 2 for metrics, _ in scored]
         return float(math.sqrt(np.mean(squares))) if np.isfinite(squares).all() else math.inf
 
