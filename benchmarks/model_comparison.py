@@ -74,9 +74,11 @@ def train_ms_per_step(run: Path) -> float:
     return 1e3 * (float(last["seconds"]) - float(first["seconds"])) / (int(last["step"]) - int(first["step"]))
 
 
-def evaluate_runs(runs: list[Path], threads: int, trajectories: int | None, no_solver: bool) -> dict:
+def evaluate_runs(runs: list[Path], threads: int, trajectories: int | None, no_solver: bool,
+                  solver: list[str] | None = None) -> dict:
     """One ``bsms.evaluate`` of ``runs[0]`` with the others compared, on the same trajectories and
-    threads; returns its metrics.json (the report and charts are in ``runs[0]``)."""
+    threads (``solver``: the solver settings, default the run's); returns its metrics.json (the
+    report and charts are in ``runs[0]``)."""
     first, *rest = runs
     command = [sys.executable, "-m", "bsms.evaluate", str(first), "--compare", *map(str, rest),
                "--threads", str(threads), "--quiet"]
@@ -84,6 +86,8 @@ def evaluate_runs(runs: list[Path], threads: int, trajectories: int | None, no_s
         command += ["--trajectories", str(trajectories)]
     if no_solver:
         command.append("--no-solver")
+    elif solver:
+        command += ["--solver", *solver]
     subprocess.run(command, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     return json.loads((first / "evaluation" / "metrics.json").read_text())
 

@@ -9,7 +9,8 @@ BSMS-GNN at latent widths 32/64/128, fewer and more levels and MLP depths 1-3 (e
 one point of the speed-accuracy chart). Each variant is ``python train.py CONFIG
 name=<prefix>_<label> <its overrides> train.steps=STEPS`` (resumable: a finished run is kept);
 then one ``bsms.evaluate`` rolls them all out on the same test trajectories, timed on the
-same threads, with the solver settings as the honest baseline (``--no-solver``: models only).
+same threads, with the solver at the data's settings for the speed-ups (``--solver S ...``: more
+settings; ``--no-solver``: models only).
 
 Writes ``<runs>/<prefix>_<study>.md``: per variant the training cost, inference ms/step and
 speed-up over the solver, rollout RMSE (all steps, relative to the body size), unstable
@@ -84,6 +85,8 @@ def main(argv=None) -> None:
     parser.add_argument("--threads", type=int, default=1, help="threads of the timed rollouts (default 1)")
     parser.add_argument("--target", type=float, default=0.01, help="relative RMSE target (default 0.01)")
     parser.add_argument("--no-solver", action="store_true", help="learned models only")
+    parser.add_argument("--solver", nargs="+", default=["ground_truth"],
+                        help="solver settings timed with the models (default ground_truth: the speed-ups)")
     parser.add_argument("overrides", nargs="*", help="more key=value overrides for every training run")
     args = parser.parse_args(argv)
     study = STUDIES[args.study]
@@ -99,7 +102,7 @@ def main(argv=None) -> None:
     for label, name in names.items():
         train(args.config, name, overrides[label], args.steps, args.runs, args.overrides)
     metrics = evaluate_runs([args.runs / name for name in names.values()], args.threads, args.trajectories,
-                            args.no_solver)
+                            args.no_solver, args.solver)
     lines = rows_table(names, overrides, metrics, args.runs, args.target)
     out = args.runs / f"{args.prefix}_{args.study}.md"
     out.write_text(f"{args.steps} training steps each, config {args.config}, extra overrides "
