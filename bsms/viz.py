@@ -6,17 +6,14 @@ Every function writes one file (atomically) and returns its path; matplotlib run
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import math
-import shutil
-import tempfile
 from pathlib import Path
 
-import meshio
 import numpy as np
 
 from datagen.atomic import atomic_path
+from datagen.export import write_series as write_xdmf
 
 __all__ = ["training_curve", "error_curves", "speed_accuracy_chart", "rollout_gif", "write_xdmf"]
 
@@ -290,34 +287,4 @@ def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarra
     with atomic_path(path, suffix=".gif") as tmp:
         animation.save(tmp, writer=PillowWriter(fps=fps))
     plt.close(fig)
-    return path
-
-
-def write_xdmf(path, cells: np.ndarray, positions: np.ndarray, times: np.ndarray,
-               point_data: dict[str, np.ndarray] | None = None) -> Path:
-    """XDMF time series (``path`` + its ``.h5``) of the body for ParaView: node positions per
-    frame (as point data ``displacement`` from frame 0 too) and any (T, N[, k]) point data."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    dim = positions.shape[-1]
-    kind = {2: "line", 3: "triangle", 4: "tetra"}[cells.shape[1]]
-
-    def padded(values: np.ndarray) -> np.ndarray:
-        return np.pad(values, ((0, 0), (0, 3 - dim)))
-
-    # written in a private folder, then both files moved into place (the .xdmf names its .h5);
-    # meshio puts the .h5 in the working folder, hence the chdir
-    folder = Path(tempfile.mkdtemp(prefix=f".{path.stem}.", dir=path.parent)).resolve()
-    try:
-        with contextlib.chdir(folder), meshio.xdmf.TimeSeriesWriter(path.name) as writer:
-            writer.write_points_cells(padded(positions[0]), [(kind, cells)])
-            for k, t in enumerate(times):
-                data = {"position": padded(positions[k]), "displacement": padded(positions[k] - positions[0])}
-                for name, values in (point_data or {}).items():
-                    data[name] = values[k]
-                writer.write_data(float(t), point_data=data)
-        for written in folder.iterdir():
-            written.replace(path.parent / written.name)
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
     return path
