@@ -46,7 +46,7 @@ SOLVERS = {"umls": {}, "bspline": {"kernel": "bspline"}}
 
 def run(name: str, config: dict, out: Path) -> datagen.Trajectory:
     """The run's trajectory, from ``out/<name>.h5`` when it is there, else simulated and saved
-    (with its particles in ``out/<name>.xdmf``)."""
+    (with its particles in ``out/<name>_particles.xdmf``)."""
     path = out / f"{name}.h5"
     if path.is_file():
         return load(path)
@@ -54,7 +54,7 @@ def run(name: str, config: dict, out: Path) -> datagen.Trajectory:
     print(f"running {name} ...", flush=True)
     trajectory = datagen.simulate(config)
     save(path, trajectory)
-    write_particles(trajectory, out / f"{name}.xdmf")
+    write_particles(trajectory, out / f"{name}_particles.xdmf")
     print(f"  {name}: {trajectory.n_particles} particles, {trajectory.substeps * (len(trajectory.times) - 1)} steps, "
           f"{time.perf_counter() - start:.0f} s", flush=True)
     return trajectory

@@ -54,6 +54,10 @@ def write_series(path, cells: np.ndarray | None, positions: np.ndarray, times: n
         raise ValueError(f"positions must be (frames, points, 2 or 3), got shape {positions.shape}")
     if len(times) != len(positions):
         raise ValueError(f"{len(times)} times for {len(positions)} frames of positions")
+    heavy = path.with_suffix(".h5")
+    if heavy.exists() and (not path.exists() or not _is_xdmf_data(heavy)):
+        raise ValueError(f"{heavy.name} beside {path.name} is not its XDMF data (an XDMF file keeps its arrays "
+                         f"in <name>.h5 and would overwrite it): choose another name for the .xdmf")
     dim = positions.shape[-1]
     cells = np.arange(positions.shape[1])[:, None] if cells is None else np.asarray(cells)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -74,6 +78,18 @@ def write_series(path, cells: np.ndarray | None, positions: np.ndarray, times: n
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     return path
+
+
+def _is_xdmf_data(path: Path) -> bool:
+    """Whether ``path`` is an HDF5 file of XDMF arrays (meshio's ``data<k>`` datasets, no
+    trajectory ``format_version``)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return "format_version" not in f.attrs and all(name.startswith("data") for name in f)
+    except OSError:
+        return False
 
 
 def particle_fields(trajectory: Trajectory) -> dict[str, np.ndarray]:

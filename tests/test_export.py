@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import datagen
+import datagen.dataset
 from datagen.export import particle_fields, write_particles, write_series
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -63,3 +64,13 @@ def test_bad_requests_name_the_fix(tmp_path, slope):
     with pytest.raises(ValueError, match=r"^an XDMF time series needs a \.xdmf path, got 'a\.vtu'$"):
         write_series(tmp_path / "a.vtu", None, slope.positions, slope.times)
     assert not any(tmp_path.iterdir())
+
+
+def test_an_xdmf_never_overwrites_a_trajectory_file_of_its_name(tmp_path, slope):
+    trajectory_file = datagen.dataset.save(tmp_path / "run.h5", slope)
+    before = trajectory_file.read_bytes()
+    with pytest.raises(ValueError, match=r"^run\.h5 beside run\.xdmf is not its XDMF data .*choose another name"):
+        write_particles(slope, tmp_path / "run.xdmf")
+    assert trajectory_file.read_bytes() == before and not (tmp_path / "run.xdmf").exists()
+    write_particles(slope, tmp_path / "series.xdmf")
+    write_particles(slope, tmp_path / "series.xdmf")  # its own data: rewritten
