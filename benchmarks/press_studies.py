@@ -5,8 +5,8 @@ family, the velocity an input and its change the output; quasi-static learning w
 noise of several sizes; multi-step training with the gradient through the last step
 (pushforward) or through every step's loss, from half the steps on) with one config and one
 budget; ``--study sweep`` trains
-BSMS-GNN at latent widths 32/64/128, fewer and more levels and MLP depths 1-3 (every variant
-one point of the speed-accuracy chart). Each variant is ``python train.py CONFIG
+BSMS-GNN at latent widths 32/64/128, fewer and more levels and MLP depths 1-3 around latent 32
+(the family's) and 64 (every variant one point of the speed-accuracy chart). Each variant is ``python train.py CONFIG
 name=<prefix>_<label> <its overrides> train.steps=STEPS`` (resumable: a finished run is kept);
 then one ``bsms.evaluate`` rolls them all out on the same test trajectories, timed on the
 same threads, with the solver at the data's settings for the speed-ups (``--solver S ...``: more
@@ -46,6 +46,8 @@ STUDIES = {
         "latent32": ["model.latent=32"],
         "latent64": ["model.latent=64"],
         "latent128": ["model.latent=128"],
+        "latent32_levels4": ["model.latent=32", "graph.levels=4"],
+        "latent32_mlp1": ["model.latent=32", "model.hidden_layers=1"],
         "latent64_levels4": ["model.latent=64", "graph.levels=4"],
         "latent64_levels8": ["model.latent=64", "graph.levels=8"],
         "latent64_mlp1": ["model.latent=64", "model.hidden_layers=1"],
