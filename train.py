@@ -94,7 +94,8 @@ def main(argv=None) -> int:
     if trainer.rank != 0:
         return 0
     print(f"trained {summary['steps']} steps in {summary['seconds']:.1f} s; final loss {summary['loss']:.4g}; "
-          f"best validation {config.train.validation.replace('_', '-')} RMSE {summary['best_valid_rmse']:.4g} m; checkpoints in "
+          f"best validation {config.train.validation.replace('_', '-')} RMSE {summary['best_valid_rmse']:.4g} m; "
+          f"checkpoints in "
           f"{trainer.run_dir / 'checkpoints'}", flush=True)
     if config.evaluate.enabled:
         try:

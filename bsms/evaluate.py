@@ -98,11 +98,11 @@ def _pictures(out: Path, k: int, trajectory, result, frames: int, spec) -> Path:
     return gif
 
 
-def _methods(model, config, compare) -> list[tuple[str, object, object]]:
-    """(label, model, config) of the run and of every run to compare, labels distinct."""
+def _methods(model, config, compare, which: str = "best") -> list[tuple[str, object, object]]:
+    """(label, model, config) of the run and of every run to compare (checkpoint ``which``), labels distinct."""
     methods = [(config.name, model, config)]
     for other in compare:
-        other_model, other_config, _ = load_model(other)
+        other_model, other_config, _ = load_model(other, which)
         methods.append((other_config.name, other_model, other_config))
     labels = [m[0] for m in methods]
     if len(set(labels)) != len(labels):
@@ -174,8 +174,8 @@ def _worker_threads(threads: int | None) -> None:
 
 
 def _learned_job(runs: list[str], files: list[str], cache_dir: str, options: EvaluateConfig, out: str):
-    model, config, _ = load_model(Path(runs[0]))
-    methods = _methods(model, config, [Path(r) for r in runs[1:]])
+    model, config, _ = load_model(Path(runs[0]), options.checkpoint)
+    methods = _methods(model, config, [Path(r) for r in runs[1:]], options.checkpoint)
     results = _Results({label: [] for label, _, _ in methods}, {})
     _roll_out(results, methods, [load(f) for f in files], Path(cache_dir), options, Path(out), False)
     return results.learned, results.memory, results.pictures
@@ -250,7 +250,9 @@ def evaluate(run_dir, compare=(), options: EvaluateConfig | None = None, progres
     Returns {"rows": one summary row per method, "report": path of report.md}.
     """
     run_dir = Path(run_dir)
-    model, config, state = load_model(run_dir)
+    model, config, state = load_model(run_dir, options.checkpoint if options else "best")
+    if options is None and config.evaluate.checkpoint != "best":
+        model, config, state = load_model(run_dir, config.evaluate.checkpoint)
     options = options or config.evaluate
     threads = torch.get_num_threads()
     if options.threads is not None:
@@ -265,7 +267,7 @@ def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateCon
     folder, dataset_name = dataset_folder(run_dir, config)
     fix = None if config.dataset.kind == "mpm" else convert_fix(config.dataset.kind, folder, options.split)
     files = split_files(folder, options.split, fix)[: options.trajectories]
-    methods = _methods(model, config, compare)
+    methods = _methods(model, config, compare, options.checkpoint)
     trajectories = [load(path) for path in files]
     _check_data(methods, trajectories, files, options, config)
     out = run_dir / "evaluation"
@@ -468,15 +470,17 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=None, help="CPU threads of the learned models")
     parser.add_argument("--workers", type=int, default=None, help="processes to spread the work over")
     parser.add_argument("--solver", nargs="+", default=None, help="solver settings (default: the run's)")
+    parser.add_argument("--checkpoint", choices=("best", "latest"), default=None,
+                        help="checkpoint of every run (default: the run's evaluate.checkpoint, best)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     try:
-        _, config, _ = load_model(args.run_dir)
+        _, config, _ = load_model(args.run_dir, args.checkpoint or "best")
         if args.device is not None:
             resolve_device(args.device, "--device")
         output_folder(args.run_dir, "the run folder (the report is written there)")
         options = copy.deepcopy(config.evaluate)
-        for key in ("split", "steps", "trajectories", "device", "threads", "workers", "solver"):
+        for key in ("split", "steps", "trajectories", "device", "threads", "workers", "solver", "checkpoint"):
             if getattr(args, key) is not None:
                 setattr(options, key, getattr(args, key))
         if args.no_solver:

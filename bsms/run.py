@@ -214,7 +214,9 @@ class EvaluateConfig:
     (each on ``threads`` threads): 1 runs the learned rollouts and then every solver run in this
     process; K > 1 makes the learned rollouts one job and each trajectory's solver runs another
     in a pool of K, so that every point, learned or solver, is timed while the other workers run
-    (the same footing for all, and about K times sooner on K cores).
+    (the same footing for all, and about K times sooner on K cores). checkpoint: which
+    checkpoint of every run is evaluated: ``best`` (lowest validation RMSE) or ``latest`` (the
+    fixed training budget; what a recipe that exports its last checkpoint ships).
     """
 
     enabled: bool = True
@@ -228,6 +230,7 @@ class EvaluateConfig:
     threads: int | None = 1
     batch: int = 8
     workers: int = 1
+    checkpoint: Literal["best", "latest"] = "best"
 
     def validate(self, prefix: str) -> None:
         if self.split not in ("train", "valid", "test"):

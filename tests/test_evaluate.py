@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from bsms.config import ConfigError
 from bsms.data import NodeType, Scenario
 from bsms.evaluate import evaluate
 from bsms.pareto import dominates, row_point
@@ -182,6 +183,34 @@ def test_evaluate_learned_only_with_fewer_steps(quickstart_run):
     assert row["label"] == "quickstart" and row["trajectories"] == 1
     three_steps = json.loads((run / "evaluation" / "metrics.json").read_text())["learned"]["quickstart"][0]
     assert three_steps["error_curve"] == six_steps[:3], "a shorter rollout is the start of the longer one"
+
+
+def test_evaluate_the_latest_checkpoint_never_reads_best(quickstart_run, tmp_path):
+    """evaluate.checkpoint: latest rolls out latest.pt (the fixed budget) and never opens best.pt:
+    with best.pt garbled, the default fails on it and ``latest`` gives the errors of latest.pt."""
+    import shutil
+
+    from bsms.checkpoint import CheckpointError
+
+    run, _, _ = quickstart_run
+    copies = {}
+    for name, best in (("garbled", None), ("best_is_latest", run / "checkpoints" / "latest.pt")):
+        copies[name] = tmp_path / name
+        shutil.copytree(run / "checkpoints", copies[name] / "checkpoints")
+        shutil.copy(run / "config.yaml", copies[name] / "config.yaml")
+        target = copies[name] / "checkpoints" / "best.pt"
+        target.write_bytes(b"not a checkpoint" if best is None else best.read_bytes())
+    options = load_config(run / "config.yaml").evaluate
+    options.solver, options.steps, options.gifs, options.checkpoint = [], 3, 0, "latest"
+    (latest,) = evaluate(copies["garbled"], options=options, progress=False)["rows"]
+    options.checkpoint = "best"
+    (same,) = evaluate(copies["best_is_latest"], options=options, progress=False)["rows"]
+    for key in ("rmse_1", "rmse_all", "rel_all"):
+        assert latest[key] == same[key] and latest[key] > 0, key
+    with pytest.raises(CheckpointError):
+        evaluate(copies["garbled"], options=options, progress=False)
+    with pytest.raises(ConfigError, match=r"^config key 'evaluate.checkpoint' must be one of 'best', 'latest', got 'last'$"):
+        load_config({"name": "x", "dataset": {"config": "d.yaml"}, "evaluate": {"checkpoint": "last"}})
 
 
 def test_a_worker_pool_measures_the_same_errors(quickstart_run):
