@@ -75,13 +75,13 @@ def train_ms_per_step(run: Path) -> float:
 
 
 def evaluate_runs(runs: list[Path], threads: int, trajectories: int | None, no_solver: bool,
-                  solver: list[str] | None = None) -> dict:
+                  solver: list[str] | None = None, checkpoint: str = "best") -> dict:
     """One ``bsms.evaluate`` of ``runs[0]`` with the others compared, on the same trajectories and
-    threads (``solver``: the solver settings, default the run's); returns its metrics.json (the
-    report and charts are in ``runs[0]``)."""
+    threads (``solver``: the solver settings, default the run's; ``checkpoint``: best or latest of
+    every run); returns its metrics.json (the report and charts are in ``runs[0]``)."""
     first, *rest = runs
     command = [sys.executable, "-m", "bsms.evaluate", str(first), "--compare", *map(str, rest),
-               "--threads", str(threads), "--quiet"]
+               "--threads", str(threads), "--checkpoint", checkpoint, "--quiet"]
     if trajectories:
         command += ["--trajectories", str(trajectories)]
     if no_solver:

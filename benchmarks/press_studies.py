@@ -9,7 +9,8 @@ BSMS-GNN at latent widths 32/64/128, fewer and more levels and MLP depths 1-3 ar
 (the family's) and 64 (every variant one point of the speed-accuracy chart). Each variant is ``python train.py CONFIG
 name=<prefix>_<label> <its overrides> train.steps=STEPS`` (resumable: a finished run is kept);
 then one ``bsms.evaluate`` rolls them all out on the same test trajectories, timed on the
-same threads, with the solver at the data's settings for the speed-ups (``--solver S ...``: more
+same threads, every variant at its last checkpoint (``--checkpoint best``: best.pt), with the
+solver at the data's settings for the speed-ups (``--solver S ...``: more
 settings; ``--no-solver``: models only).
 
 Writes ``<runs>/<prefix>_<study>.md``: per variant the training cost, inference ms/step and
@@ -89,6 +90,9 @@ def main(argv=None) -> None:
     parser.add_argument("--no-solver", action="store_true", help="learned models only")
     parser.add_argument("--solver", nargs="+", default=["ground_truth"],
                         help="solver settings timed with the models (default ground_truth: the speed-ups)")
+    parser.add_argument("--checkpoint", choices=("best", "latest"), default="latest",
+                        help="checkpoint of every variant (default latest: the same budget for all; best.pt is "
+                             "only as good as the validation split)")
     parser.add_argument("overrides", nargs="*", help="more key=value overrides for every training run")
     args = parser.parse_args(argv)
     study = STUDIES[args.study]
@@ -104,10 +108,11 @@ def main(argv=None) -> None:
     for label, name in names.items():
         train(args.config, name, overrides[label], args.steps, args.runs, args.overrides)
     metrics = evaluate_runs([args.runs / name for name in names.values()], args.threads, args.trajectories,
-                            args.no_solver, args.solver)
+                            args.no_solver, args.solver, args.checkpoint)
     lines = rows_table(names, overrides, metrics, args.runs, args.target)
     out = args.runs / f"{args.prefix}_{args.study}.md"
-    out.write_text(f"{args.steps} training steps each, config {args.config}, extra overrides "
+    out.write_text(f"{args.steps} training steps each ({args.checkpoint} checkpoint), config {args.config}, "
+                   f"extra overrides "
                    f"{' '.join(args.overrides) or 'none'}\n\n" + "\n".join(lines) + "\n")
     print("\n".join(lines))
     print(f"written to {out}; report with charts: {args.runs / names[chosen[0]] / 'report.md'}")
