@@ -30,8 +30,12 @@ import sys
 import time
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 import torch
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -60,17 +64,7 @@ def run(name: str, config: dict, out: Path) -> datagen.Trajectory:
     return trajectory
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def draw_runout(slopes: dict, path: Path) -> None:
-    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     for label, trajectory in slopes.items():
         ax.plot(trajectory.times, trajectory.diagnostics["runout"], label=label)
@@ -83,7 +77,6 @@ def draw_runout(slopes: dict, path: Path) -> None:
 
 
 def draw_plastic_strain(slopes: dict, path: Path) -> None:
-    plt = _pyplot()
     fig, axes = plt.subplots(len(slopes), 1, figsize=(8, 2.6 * len(slopes)), sharex=True, squeeze=False)
     top = max(float(t.diagnostics["plastic_strain"][-1].max()) for t in slopes.values())
     for ax, (label, trajectory) in zip(axes[:, 0], slopes.items(), strict=True):
@@ -104,7 +97,6 @@ def total_energy(d: dict) -> np.ndarray:
 
 
 def draw_expansion(trajectory, radius: float, path: Path) -> None:
-    plt = _pyplot()
     d, t = trajectory.diagnostics, trajectory.times
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.4))
     axes[0].plot(t, d["contact_force"])

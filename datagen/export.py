@@ -125,7 +125,6 @@ def write_particles(trajectory: Trajectory, path, frame: int | None = None) -> P
             **{name: _vectors(values[k], dim) for name, values in fields.items()}}
     mesh = meshio.Mesh(_padded(positions[k], dim), [("vertex", np.arange(len(positions[k]))[:, None])],
                        point_data=data)
-    path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path, suffix=path.suffix) as tmp:
         mesh.write(tmp)
     return path
