@@ -127,19 +127,20 @@ def fracture_by_mode(scenes: tuple[str, ...] = ("stretched_bar", "rotating_plate
 
 
 # ----------------------------------------------------------------------------- 4. learned rollouts
-def comparison_rows(runs: Path = Path("runs")) -> dict[str, dict]:
-    """run name -> its learned row (rmse_all, first_unstable_step, unstable, trajectories) in
-    the comparison runs' evaluation/metrics.json files (cmp_*). One evaluation with
-    ``--compare`` (benchmarks/model_comparison.py) writes every compared run's row into the
-    first run's file; rows are keyed by their label, the run name."""
+def comparison_rows(runs: Path = Path("runs"), prefix: str = "cmp_") -> dict[str, dict]:
+    """run name -> its learned row (rmse_all, rel_all, first_unstable_step, unstable, trajectories)
+    in the evaluation/metrics.json files of the runs named ``prefix``*: the comparison runs (cmp_*)
+    by default, or a training study's runs (benchmarks/press_studies.py --prefix). One evaluation
+    with ``--compare`` writes every compared run's row into the first run's file; rows are keyed
+    by their label, the run name."""
     out = {}
-    for path in sorted(runs.glob("cmp_*/evaluation/metrics.json")):
+    for path in sorted(runs.glob(f"{prefix}*/evaluation/metrics.json")):
         try:
             rows = json.loads(path.read_text())["rows"]
         except (OSError, ValueError, KeyError):
             continue
         for row in rows:
-            if row.get("kind") == "learned" and str(row.get("label", "")).startswith("cmp_"):
+            if row.get("kind") == "learned" and str(row.get("label", "")).startswith(prefix):
                 out.setdefault(row["label"], row)
     return out
 

@@ -167,9 +167,11 @@ def solver_study(quick: bool) -> dict:
             "fracture": solvers.fracture_by_mode(scenes)}
 
 
-def learned_study(quick: bool) -> dict:
-    """Item 4: the comparison runs' rollouts, and the seeding sensitivity of a trained BSMS-GNN."""
+def learned_study(quick: bool, recipes: str = "s4k_") -> dict:
+    """Item 4: the comparison runs' rollouts (per model), a training study's (per recipe: the runs
+    named ``recipes``*, benchmarks/press_studies.py), and the seeding sensitivity of a trained BSMS-GNN."""
     rows = solvers.comparison_rows()
+    recipe_rows = solvers.comparison_rows(prefix=recipes) if recipes else {}
     run = next((Path("runs") / name for name in ("cmp_bsms", "quickstart")
                 if (Path("runs") / name / "checkpoints").is_dir()), None)
     seeding = None
@@ -178,7 +180,7 @@ def learned_study(quick: bool) -> dict:
             seeding = solvers.seeding_sensitivity(run, trajectories=2 if quick else 4, steps=60 if quick else None)
         except (OSError, ValueError, RuntimeError) as exc:
             print(f"seeding sensitivity skipped: {exc}")
-    return {"rows": rows, "seeding": seeding}
+    return {"rows": rows, "recipes": recipe_rows, "seeding": seeding}
 
 
 # ----------------------------------------------------------------------------- pictures
@@ -286,6 +288,41 @@ def plot_solver(res: dict, folder: Path) -> None:
     _save(fig, folder / "failures_fracture.png")
 
 
+def _stability(metrics: dict, error: str = "rmse_all") -> str:
+    """'RMSE / first unstable step', or '/ stable (N rollouts)' when none of them went unstable."""
+    step = metrics.get("first_unstable_step")
+    stable = _fmt(step)
+    if step is None and "trajectories" in metrics:
+        stable = f"stable ({metrics['trajectories']} rollouts)"
+    return f"{_fmt(metrics.get(error))} / {stable}"
+
+
+def plot_learned(learned: dict, path: Path) -> bool:
+    """Item 4's picture: RMSE-all per model (comparison runs) and per training recipe, bars hatched
+    where a rollout went unstable, labelled with the first unstable step. False if there is nothing."""
+    groups = [(title, rows, key) for title, rows, key in
+              (("per model (comparison runs, RMSE-all)", learned["rows"], "rmse_all"),
+               ("per training recipe (RMSE-all / body size)", learned.get("recipes", {}), "rel_all")) if rows]
+    if not groups:
+        return False
+    fig, axes = plt.subplots(1, len(groups), figsize=(6 * len(groups), 3.8), squeeze=False)
+    for ax, (title, rows, key) in zip(axes[0], groups, strict=True):
+        names = list(rows)
+        values = [float(rows[n].get(key) or np.nan) for n in names]
+        bars = ax.bar(range(len(names)), values, color="tab:blue")
+        for bar, name in zip(bars, names, strict=True):
+            step = rows[name].get("first_unstable_step")
+            if step is not None:
+                bar.set_hatch("//")
+                bar.set_color("tab:red")
+            ax.annotate("stable" if step is None else f"unstable at {step}", (bar.get_x() + bar.get_width() / 2,
+                        bar.get_height()), ha="center", va="bottom", fontsize=6)
+        ax.set_xticks(range(len(names)), names, rotation=35, ha="right", fontsize=7)
+        ax.set_title(title, fontsize=9)
+    _save(fig, path)
+    return True
+
+
 def _fmt(value, digits: int = 3) -> str:
     if value is None or (isinstance(value, float) and not np.isfinite(value)):
         return "-"
@@ -328,10 +365,11 @@ def table(sticks: dict, u: dict, pooling: dict, solver: dict, learned: dict) -> 
         if scene != "picture":
             row("3 numerical fracture", f"{scene}, {mode}", "largest torn-edge fraction", _fmt(value))
     for run, metrics in rows.items():
-        row("4 learned rollouts", run, "RMSE-all / first unstable step",
-            f"{_fmt(metrics.get('rmse_all'))} / {_fmt(metrics.get('first_unstable_step'))}")
+        row("4 learned rollouts", run, "RMSE-all / first unstable step", _stability(metrics))
     if not rows:
         row("4 learned rollouts", "(no runs/cmp_* yet)", "RMSE-all / first unstable step", "-")
+    for run, metrics in learned.get("recipes", {}).items():
+        row("4 training recipes", run, "RMSE-all (of body size) / first unstable step", _stability(metrics, "rel_all"))
     seeding = learned["seeding"]
     if seeding:
         base = seeding[seeding["trained"]]
@@ -348,6 +386,8 @@ def main(argv=None) -> None:
     parser.add_argument("--quick", action="store_true", help="smaller models and looser losses (< 15 min, 2 cores)")
     parser.add_argument("--images", type=Path, default=Path("docs/images"))
     parser.add_argument("--table", type=Path, default=Path("docs/failures.md"))
+    parser.add_argument("--recipes", default="s4k_",
+                        help="item 4's training recipes: runs/<prefix>* of benchmarks/press_studies.py ('' for none)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     args.images.mkdir(parents=True, exist_ok=True)
@@ -359,19 +399,20 @@ def main(argv=None) -> None:
     plot_pooling(pooling, args.images / "failures_pooling.png")
     solver = solver_study(args.quick)
     plot_solver(solver, args.images)
-    learned = learned_study(args.quick)
+    learned = learned_study(args.quick, args.recipes)
+    has_learned = plot_learned(learned, args.images / "failures_learned.png")
     text = table(sticks, u, pooling, solver, learned)
     print(text)
     args.table.parent.mkdir(parents=True, exist_ok=True)
-    args.table.write_text(_markdown(text, args))
+    args.table.write_text(_markdown(text, args, has_learned))
     print(f"wrote {args.table} and {args.images}/failures_*.png in {time.perf_counter() - start:.0f} s")
     l1, b1 = (float(np.mean(pooling[name][1])) for name in ("gunets", "bistride"))
     print(f"failures: junction error GRID/BSMS {sticks['ratio']:.3g}, U-channel GRID/BSMS {u['ratio']:.3g}, "
           f"uncovered nodes GUNETS {l1:.3g} vs BISTRIDE {b1:.3g}")
 
 
-def _markdown(text: str, args) -> str:
-    pictures = ["sticks", "u_channel", "pooling", "linear_kernel", "eta", "fracture"]
+def _markdown(text: str, args, learned: bool = True) -> str:
+    pictures = ["sticks", "u_channel", "pooling", "linear_kernel", "eta", "fracture"] + ["learned"] * learned
     images = "\n".join(f"![{name}](images/failures_{name}.png)" for name in pictures)
     return (f"# Where methods fail\n\nMeasured by `python benchmarks/failures.py{' --quick' * args.quick}` "
             f"(see its docstring for every measure).\n\n{text}\n\n{images}\n")

@@ -75,3 +75,31 @@ def test_grid_cells_across_a_gap_break_the_junction():
         errors[kind] = np.sqrt(np.mean(error[junction] ** 2))
     assert errors["bsms"] < 0.03  # measured 0.0098: a single stick's training error, nothing crosses the gap
     assert errors["grid"] / errors["bsms"] >= 10
+
+
+def test_learned_rows_are_read_by_run_prefix_and_stable_rollouts_say_so(tmp_path):
+    """Item 4 reads each study's rows from its runs' evaluation files by run-name prefix, and a
+    row with no unstable rollout reads 'stable (N rollouts)', not a missing step."""
+    import json
+
+    import failure_solvers as solvers
+    import failures
+
+    rows = [{"kind": "learned", "label": "s4k_a", "rmse_all": 0.002, "rel_all": 0.0114, "first_unstable_step": None,
+             "unstable": 0, "trajectories": 6},
+            {"kind": "learned", "label": "s4k_b", "rmse_all": 0.3, "rel_all": 0.5, "first_unstable_step": 37,
+             "unstable": 2, "trajectories": 6},
+            {"kind": "learned", "label": "other", "rmse_all": 1.0},
+            {"kind": "solver", "label": "s4k_solver", "rmse_all": 0.0}]
+    (tmp_path / "s4k_a" / "evaluation").mkdir(parents=True)
+    (tmp_path / "s4k_a" / "evaluation" / "metrics.json").write_text(json.dumps({"rows": rows}))
+    (tmp_path / "cmp_x" / "evaluation").mkdir(parents=True)
+    (tmp_path / "cmp_x" / "evaluation" / "metrics.json").write_text(json.dumps({"rows": rows}))
+    got = solvers.comparison_rows(tmp_path, prefix="s4k_")
+    assert list(got) == ["s4k_a", "s4k_b"]
+    assert solvers.comparison_rows(tmp_path) == {}  # cmp_x's file holds no cmp_ row
+    assert failures._stability(got["s4k_a"], "rel_all") == "0.0114 / stable (6 rollouts)"
+    assert failures._stability(got["s4k_b"]) == "0.3 / 37"
+    assert failures.plot_learned({"rows": {}, "recipes": got}, tmp_path / "learned.png")
+    assert (tmp_path / "learned.png").stat().st_size > 0
+    assert not failures.plot_learned({"rows": {}, "recipes": {}}, tmp_path / "none.png")
