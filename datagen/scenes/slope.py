@@ -22,8 +22,10 @@ this resolution takes hours on two cores (the CFL step of nu = 0.499 is ~1e-4 s)
 the 3D slope; the paper's resolution is ``mesh_size: 0.2, particle_spacing: 0.1``.
 
 The solver defaults to APIC with F-bar (``solver.fbar``, :mod:`~datagen.mpm.inelastic`) against
-volumetric locking, as the papers did. Per-frame diagnostics: ``runout`` (m, the advance of the
-foremost particle beyond the initial toe), ``plastic_strain_max``, and per tracked particle
+volumetric locking. The papers used F-bar with FLIP; with FLIP the B-spline grid reference blows
+up at the default resolution (README, "Plasticity and the papers' 3D cases"), so both run APIC
+here. Per-frame diagnostics: ``runout`` (m, the advance of the foremost particle beyond the
+initial toe), ``plastic_strain_max``, and per tracked particle
 ``plastic_strain`` (eps_q^p) and ``mean_stress`` (tr sigma / 3, Pa; negative in compression).
 """
 
