@@ -49,8 +49,8 @@ from bsms.graph.coverage import level_coverage  # noqa: E402
 
 STICK = {"quick": dict(n=32, target=1e-4, steps=2000, latent=32),
          "full": dict(n=32, target=1e-5, steps=8000, latent=64)}
-U = {"quick": dict(size=0.34, target=1e-4, steps=2000, latent=32), "full": dict(size=0.25, target=3e-5, steps=8000,
-                                                                                latent=64)}
+U = {"quick": dict(size=0.34, target=1e-4, steps=2000, latent=32, arms=(4.0, 6.0), gaps=(0.6, 2.0)),
+     "full": dict(size=0.25, target=3e-5, steps=8000, latent=64, arms=(4.0, 5.0, 6.0), gaps=(0.6, 1.2, 2.0))}
 GRIDS = 3  # MS-GNN-Grid: the mesh and three grids
 
 
@@ -108,17 +108,20 @@ def sticks_study(quick: bool) -> dict:
 
 
 def u_study(quick: bool) -> dict:
-    """Item 1, U channel: train on U's with arms 1-3 widths apart, test on arms 0.2 widths apart."""
+    """Item 1, U channel: train on U's whose arms are further apart than the grid's finest cell
+    (0.6-2 widths, the cell 0.5), test on arms 0.2 widths apart, as long as the longest trained
+    (the gap is the one thing the test changes). Training gaps of 1-3 widths left BSMS-GNN
+    extrapolating the U's bottom bar too (its near-gap error 0.052 against 0.040)."""
     s = U["quick" if quick else "full"]
     size, dx, levels, test_gap = s["size"], 0.5, 6, 0.2
-    arms, gaps = ((4.0, 6.0), (1.0, 3.0)) if quick else ((4.0, 5.0, 6.0), (1.0, 2.0, 3.0))
+    arms, gaps = s["arms"], s["gaps"]
     print(f"U channel: width 1, mesh size {size}, training gaps {gaps}, test gap {test_gap}, grid cell {dx}")
     cases = [fc.u_channel(g, arm=a, size=size, temperatures=tp)
              for a in arms for g in gaps for tp in ((1.0, 0.0), (0.0, 1.0))]
     trained = _train_pair(fc.joined(cases), size, levels, dx, s, batches=1 if quick else 2)
-    out = {"losses": {k: v[1] for k, v in trained.items()}, "gap": test_gap, "dx": dx, "tests": []}
+    out = {"losses": {k: v[1] for k, v in trained.items()}, "gap": test_gap, "dx": dx, "train_gaps": gaps, "tests": []}
     for temperatures in ((1.0, 0.0), (0.0, 1.0)):
-        case = fc.u_channel(test_gap, arm=5.0, size=size, temperatures=temperatures)
+        case = fc.u_channel(test_gap, arm=arms[-1], size=size, temperatures=temperatures)
         near = (case.nodes[:, 1] > 1.0) & (np.abs(case.nodes[:, 0] - (1.0 + test_gap / 2)) <= 0.5 + test_gap / 2)
         test = {"case": case, "near": near}
         for kind, (core, _) in trained.items():
@@ -225,7 +228,9 @@ def plot_u(res: dict, path: Path) -> None:
         ax.set_title(title, fontsize=8)
         ax.set_aspect("equal")
         ax.axis("off")
-    fig.suptitle(f"U channel, arms {res['gap']} apart (grid cell {res['dx']}); trained on arms 1-3 apart", fontsize=9)
+    gaps = ", ".join(f"{g:g}" for g in res["train_gaps"])
+    fig.suptitle(f"U channel, arms {res['gap']} apart (grid cell {res['dx']}); trained on arms {gaps} apart",
+                 fontsize=9)
     _save(fig, path)
 
 
