@@ -95,8 +95,7 @@ def main(argv=None) -> int:
         return 0
     print(f"trained {summary['steps']} steps in {summary['seconds']:.1f} s; final loss {summary['loss']:.4g}; "
           f"best validation {config.train.validation.replace('_', '-')} RMSE {summary['best_valid_rmse']:.4g} m; "
-          f"checkpoints in "
-          f"{trainer.run_dir / 'checkpoints'}", flush=True)
+          f"checkpoints in {trainer.run_dir / 'checkpoints'}", flush=True)
     if config.evaluate.enabled:
         try:
             result = evaluate(trainer.run_dir, options=config.evaluate, progress=config.train.progress)

@@ -318,8 +318,9 @@ def plot_learned(learned: dict, path: Path) -> bool:
         for bar, name in zip(bars, names, strict=True):
             step = rows[name].get("first_unstable_step")
             if step is not None:
+                bar.set_facecolor("tab:red")  # set_color would paint the hatch over too
+                bar.set_edgecolor("white")
                 bar.set_hatch("//")
-                bar.set_color("tab:red")
             ax.annotate("stable" if step is None else f"unstable at {step}", (bar.get_x() + bar.get_width() / 2,
                         bar.get_height()), ha="center", va="bottom", fontsize=6)
         ax.set_xticks(range(len(names)), names, rotation=35, ha="right", fontsize=7)

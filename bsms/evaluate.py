@@ -42,7 +42,7 @@ from bsms.config import ConfigError
 from bsms.fields import eulerian_state, spec_of, world_positions
 from bsms.learned_rollouts import learned_rollouts
 from bsms.rollout import peak_memory_mb, summarize
-from bsms.run import EvaluateConfig, convert_fix, dataset_folder, load_model, resolve_device, split_files
+from bsms.run import EvaluateConfig, convert_fix, dataset_folder, load_model, resolve_device, saved_options, split_files
 from bsms.solver_runs import SOLVER_SETTINGS, frame_dt, run_solver, setting_label
 from datagen.atomic import atomic_path
 from datagen.config import output_folder
@@ -250,9 +250,8 @@ def evaluate(run_dir, compare=(), options: EvaluateConfig | None = None, progres
     Returns {"rows": one summary row per method, "report": path of report.md}.
     """
     run_dir = Path(run_dir)
+    options = options or saved_options(run_dir)
     model, config, state = load_model(run_dir, options.checkpoint if options else "best")
-    if options is None and config.evaluate.checkpoint != "best":
-        model, config, state = load_model(run_dir, config.evaluate.checkpoint)
     options = options or config.evaluate
     threads = torch.get_num_threads()
     if options.threads is not None:
@@ -475,11 +474,11 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     try:
-        _, config, _ = load_model(args.run_dir, args.checkpoint or "best")
+        saved = saved_options(args.run_dir) or load_model(args.run_dir, args.checkpoint or "best")[1].evaluate
+        options = copy.deepcopy(saved)
         if args.device is not None:
             resolve_device(args.device, "--device")
         output_folder(args.run_dir, "the run folder (the report is written there)")
-        options = copy.deepcopy(config.evaluate)
         for key in ("split", "steps", "trajectories", "device", "threads", "workers", "solver", "checkpoint"):
             if getattr(args, key) is not None:
                 setattr(options, key, getattr(args, key))

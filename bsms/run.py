@@ -315,6 +315,13 @@ def checkpoint_path(run_dir, which: str) -> Path:
     return Path(run_dir) / "checkpoints" / f"{which}.pt"
 
 
+def saved_options(run_dir) -> EvaluateConfig | None:
+    """The evaluate section of a run folder's config.yaml (None without one), read before any
+    checkpoint is chosen, so that a run whose ``evaluate.checkpoint`` is latest never opens best.pt."""
+    path = Path(run_dir) / "config.yaml"
+    return load_config(path).evaluate if path.is_file() else None
+
+
 def find_checkpoint(run_dir, which: str = "best") -> Path:
     """The checkpoint ``which`` of a run folder, falling back from best to latest."""
     run_dir = Path(run_dir)

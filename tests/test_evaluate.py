@@ -11,11 +11,13 @@ from pathlib import Path
 import meshio
 import numpy as np
 import pytest
+import yaml
 from PIL import Image
 
 from bsms.config import ConfigError
 from bsms.data import NodeType, Scenario
 from bsms.evaluate import evaluate
+from bsms.evaluate import main as evaluate_main
 from bsms.pareto import dominates, row_point
 from bsms.rollout import rollout
 from bsms.run import load_config, load_model
@@ -209,6 +211,10 @@ def test_evaluate_the_latest_checkpoint_never_reads_best(quickstart_run, tmp_pat
         assert latest[key] == same[key] and latest[key] > 0, key
     with pytest.raises(CheckpointError):
         evaluate(copies["garbled"], options=options, progress=False)
+    saved = yaml.safe_load((copies["garbled"] / "config.yaml").read_text())  # the run's own evaluate.checkpoint
+    saved["evaluate"]["checkpoint"] = "latest"
+    (copies["garbled"] / "config.yaml").write_text(yaml.safe_dump(saved))
+    assert evaluate_main([str(copies["garbled"]), "--no-solver", "--steps", "3", "--quiet"]) == 0
     with pytest.raises(ConfigError, match=r"^config key 'evaluate.checkpoint' must be one of 'best', 'latest', got 'last'$"):
         load_config({"name": "x", "dataset": {"config": "d.yaml"}, "evaluate": {"checkpoint": "last"}})
 
