@@ -31,7 +31,7 @@ from dataclasses import replace
 
 import torch
 
-from . import linalg
+from . import linalg, native
 from .kernels import KernelResult
 from .model import Model
 from .state import State
@@ -50,6 +50,9 @@ def initial_fields(model: Model, n: int, *, device, dtype) -> dict:
 def patch_average(k: KernelResult, value: torch.Tensor, volume: torch.Tensor, n_nodes: int) -> torch.Tensor:
     """(P,) the volume-weighted average of a particle field ``value`` (P,) over each particle's nodal
     patch: P2G to the nodes and G2P back with the positive part of the weights (module docstring)."""
+    compiled = native.patch_average(k, value, volume, n_nodes)
+    if compiled is not None:
+        return compiled
     w = k.weight.clamp(min=0.0) * (k.index >= 0)
     wv = w * volume[:, None]
     flat = k.index.clamp(min=0).reshape(-1)

@@ -24,7 +24,7 @@ import torch
 
 from ..layer import ExtendedMesh
 from ..mesh import Mesh
-from . import linalg
+from . import linalg, native
 from .locate import CellLocator, LocateStatus, Location, locate
 
 __all__ = [
@@ -320,29 +320,41 @@ def umls_kernel(mesh, x, eta: bool = True, *, nonnegative: bool = True, location
     if location is None:
         location = locate(tables.locator, x, guess)
     cell = location.cell.clamp(min=0)
-    index = _gather_rows(tables.ring, cell)
-    index = index.masked_fill_((location.status != LocateStatus.INSIDE)[:, None], -1)
-    empty = index < 0
-    r = _node_offsets(tables, index, x)
+    compiled = native.umls_weights(tables, x, location, eta)
+    if compiled is not None:
+        index, weight, grad, r, negative = compiled
+        rows = negative.nonzero().squeeze(1) if nonnegative else None
+    else:
+        index = _gather_rows(tables.ring, cell)
+        index = index.masked_fill_((location.status != LocateStatus.INSIDE)[:, None], -1)
+        r = _node_offsets(tables, index, x)
+        d = _sample_weights(tables, r, index, cell, location.bary, eta)
+        weight, grad = mls_linear_weights(d, r)
+        rows = (weight < 0).any(dim=1).nonzero().squeeze(1) if nonnegative else None
+        r.masked_fill_(index < 0, 0.0)
+    if rows is not None and rows.numel():
+        rows_r = r.index_select(1, rows)
+        d_rows = _sample_weights(tables, rows_r, index[rows], cell[rows], location.bary[rows], eta)
+        start = _barycentric_in_ring(tables, index[rows], cell[rows], location.bary[rows])
+        weight[rows], grad[:, rows] = nonnegative_mls(d_rows, rows_r, *start, mls_weight=weight[rows])
+    return KernelResult(index=index, weight=weight, grad_axes=grad, offset_axes=r, status=location.status,
+                        cell=location.cell)
+
+
+def _sample_weights(tables: MeshTables, r: torch.Tensor, index: torch.Tensor, cell: torch.Tensor,
+                    bary: torch.Tensor, eta: bool) -> torch.Tensor:
+    """(R, K) UMLS sample weights d_i = N(|x_i - x_p| / h) eta_i (0 in empty slots) from the offsets
+    r: (d, R, K) of the slots ``index`` of particles in ``cell`` at barycentric coordinates ``bary``."""
     q = torch.mul(r[0], r[0])
     for a in range(1, tables.dim):
         q.addcmul_(r[a], r[a])
     d = quadratic_bspline(q.sqrt_().mul_(1.0 / tables.h))
     if eta:  # zero in empty slots, whose adjacency is False
-        adjacency = _gather_rows(tables.ring_adjacency, cell)  # (P, d+1, K)
-        bary = location.bary
+        adjacency = _gather_rows(tables.ring_adjacency, cell)  # (R, d+1, K)
         d.mul_(sum(bary[:, n, None] * adjacency[:, n] for n in range(tables.dim + 1)))  # UMLS eq. 32
     else:
-        d.masked_fill_(empty, 0.0)
-    weight, grad = mls_linear_weights(d, r)
-    if nonnegative:
-        rows = (weight < 0).any(dim=1).nonzero().squeeze(1)
-        if rows.numel():
-            rows_r = r.index_select(1, rows)
-            start = _barycentric_in_ring(tables, index[rows], cell[rows], location.bary[rows])
-            weight[rows], grad[:, rows] = nonnegative_mls(d[rows], rows_r, *start, mls_weight=weight[rows])
-    return KernelResult(index=index, weight=weight, grad_axes=grad, offset_axes=r.masked_fill_(empty, 0.0),
-                        status=location.status, cell=location.cell)
+        d.masked_fill_(index < 0, 0.0)
+    return d
 
 
 def _node_offsets(tables: MeshTables, index: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from ..mesh import Mesh
+from . import native
 
 __all__ = ["CellLocator", "Location", "LocateStatus", "locate", "barycentric"]
 
@@ -153,10 +154,15 @@ def locate(locator: CellLocator, x: torch.Tensor, guess: torch.Tensor | None = N
     todo = finite
     if guess is not None:
         guess = guess.to(x.device)
-        trial = barycentric(locator, guess.clamp(min=0), x)
-        hit = finite & (guess >= 0) & (trial.min(dim=1).values >= -BARYCENTRIC_TOL)
-        cell = torch.where(hit, guess, cell)
-        bary = torch.where(hit[:, None], trial, bary)
+        compiled = native.locate_guess(locator, x, guess, BARYCENTRIC_TOL)
+        if compiled is not None:
+            cell, bary = compiled
+            hit = cell >= 0
+        else:
+            trial = barycentric(locator, guess.clamp(min=0), x)
+            hit = finite & (guess >= 0) & (trial.min(dim=1).values >= -BARYCENTRIC_TOL)
+            cell = torch.where(hit, guess, cell)
+            bary = torch.where(hit[:, None], trial, bary)
         todo = finite & ~hit
     pending = torch.nonzero(todo).flatten()
     chunk = max(1, _CHUNK_ENTRIES // max(1, locator.buckets.shape[1] * (d + 1)))

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import torch
 
+from . import native
 from .kernels import KernelResult
 
-__all__ = ["scatter", "gather", "interpolate", "moment", "apic_inertia"]
+__all__ = ["scatter", "gather", "interpolate", "moment", "apic_inertia", "slot_sums"]
 
 
 def scatter(k: KernelResult, values: torch.Tensor, n_nodes: int) -> torch.Tensor:
@@ -43,3 +44,17 @@ def moment(k: KernelResult, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def apic_inertia(k: KernelResult) -> torch.Tensor:
     """(P, d, d) the APIC inertia D_p = sum_i w_ip (x_i - x_p)(x_i - x_p)^T (UMLS eq. 48)."""
     return moment(k, k.offset_axes, k.offset_axes)
+
+
+def slot_sums(k: KernelResult, field: torch.Tensor, moments: bool = False):
+    """G2P's sums for node fields (c, N) whose first d rows are velocities: interp (P, c) =
+    sum_i w_ip f_i, grad_v (P, d, d) = sum_i v_i grad w_ip^T and, with ``moments``, the APIC
+    B (P, d, d) = sum_i w_ip v_i (x_i - x_p)^T (else None). Compiled where it can be
+    (:func:`~datagen.mpm.native.g2p`), else in torch."""
+    compiled = native.g2p(k, field, moments)
+    if compiled is not None:
+        return compiled
+    d = k.grad_axes.shape[0]
+    slots = gather(k, field)
+    grad_v = torch.bmm(slots[:d].permute(1, 0, 2), k.grad_axes.permute(1, 2, 0))
+    return interpolate(k, slots), grad_v, moment(k, slots[:d], k.offset_axes) if moments else None

@@ -12,28 +12,36 @@ from dataclasses import replace
 
 import torch
 
-from . import linalg
+from . import linalg, native
 from .boundary import fold_mirrors
 from .kernels import KernelResult
 from .model import Model
 from .nodal import Nodal, constrain, index_conditions
-from .slots import apic_inertia, gather, interpolate, moment, scatter
+from .slots import apic_inertia, scatter, slot_sums
 from .state import State
 from .stress import force_stress
 
 __all__ = ["SLOT_TRANSFERS", "p2g_plain", "p2g_apic", "g2p_flip", "g2p_pic", "g2p_apic", "g2p_musl"]
 
 
-def _p2g(model: Model, state: State, k: KernelResult, velocity: torch.Tensor) -> torch.Tensor:
+def _p2g(model: Model, state: State, k: KernelResult, affine: torch.Tensor | None = None) -> torch.Tensor:
     """Scatter [m_i, m_i v_i, f_int_i] -> (1+2d, N) (UMLS Alg. 1 lines 2-3, UMLS eqs. 9-10).
 
-    velocity: (d, P, K) or (d, P, 1), the particle velocity seen by each node.
+    Nodes see the particle velocity v_p, or with ``affine`` (P, d, d) the APIC v_p + C_p (x_i - x_p).
     f_int_i = -sum_p V_p^0 tau_p grad w_ip with tau = J sigma the Kirchhoff stress (in a
     reference configuration: tau_p (F_p^{sn})^-T grad_s w_ip, see :func:`force_stress`).
     """
     d = model.dim
-    wm = k.weight * state.mass[:, None]
     coef = force_stress(model, state) * (-state.volume0[:, None, None])
+    compiled = native.p2g(k, state.mass, state.v, coef, affine, model.n_nodes)
+    if compiled is not None:
+        return compiled
+    r = k.offset_axes
+    if affine is None:
+        velocity = state.v.T[:, :, None]
+    else:
+        velocity = [state.v[:, a, None] + sum(affine[:, a, b, None] * r[b] for b in range(d)) for a in range(d)]
+    wm = k.weight * state.mass[:, None]
     g = k.grad_axes
     values = wm.new_empty((1 + 2 * d,) + wm.shape)
     values[0] = wm
@@ -45,26 +53,22 @@ def _p2g(model: Model, state: State, k: KernelResult, velocity: torch.Tensor) ->
 
 def p2g_plain(model: Model, state: State, k: KernelResult) -> torch.Tensor:
     """FLIP/PIC P2G: nodes see the particle velocity v_p. Returns (1+2d, N) [m, p, f_int]."""
-    return _p2g(model, state, k, state.v.T[:, :, None])
+    return _p2g(model, state, k)
 
 
 def p2g_apic(model: Model, state: State, k: KernelResult) -> torch.Tensor:
     """APIC P2G (UMLS eq. 48): nodes see v_p + B_p D_p^-1 (x_i - x_p), D_p = sum w r r^T."""
-    r = k.offset_axes
-    C = state.affine @ linalg.inv(apic_inertia(k))
-    d = model.dim
-    velocity = [state.v[:, a, None] + sum(C[:, a, b, None] * r[b] for b in range(d)) for a in range(d)]
-    return _p2g(model, state, k, velocity)
+    return _p2g(model, state, k, state.affine @ linalg.inv(apic_inertia(k)))
 
 
-def _deformed(model: Model, state: State, k: KernelResult, v_slots: torch.Tensor, dt: float) -> dict:
-    """The updated deformation fields of ``state``; v_slots: (d, P, K) new nodal velocities.
+def _deformed(model: Model, state: State, grad_v: torch.Tensor, dt: float) -> dict:
+    """The updated deformation fields of ``state``; grad_v: (P, d, d) sum_i v_i grad w_ip^T of the
+    new nodal velocities.
 
     Eulerian: F <- (I + dt sum_i v_i grad w_ip^T) F (UMLS eq. 17). In a reference
     configuration: F^{sn} <- F^{sn} + dt grad_s v_p with grad_s v_p = sum_i v_i grad_s w_ip^T
     (A-ULMPM eqs. 45-47), and F = F^{sn} F^{0s} (A-ULMPM eq. 32).
     """
-    grad_v = torch.bmm(v_slots.permute(1, 0, 2), k.grad_axes.permute(1, 2, 0))
     ref = state.reference
     if ref is None:
         out = {"F": state.F + dt * torch.bmm(grad_v, state.F)}
@@ -81,25 +85,21 @@ def _deformed(model: Model, state: State, k: KernelResult, v_slots: torch.Tensor
 def g2p_flip(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float) -> State:
     """FLIP: v_p += sum w (v~_i - v_i) (UMLS eq. 16); x_p += dt sum w v~_i (UMLS eq. 15)."""
     d = model.dim
-    slots = gather(k, torch.cat([grid.v_new, grid.v_new - grid.v]))
-    moved_dv = interpolate(k, slots)
+    moved_dv, grad_v, _ = slot_sums(k, torch.cat([grid.v_new, grid.v_new - grid.v]))
     x = state.x + dt * moved_dv[:, :d]
-    return replace(state, x=x, v=state.v + moved_dv[:, d:], **_deformed(model, state, k, slots[:d], dt))
+    return replace(state, x=x, v=state.v + moved_dv[:, d:], **_deformed(model, state, grad_v, dt))
 
 
 def g2p_pic(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float) -> State:
     """PIC: v_p = sum w v~_i."""
-    vi = gather(k, grid.v_new)
-    v = interpolate(k, vi)
-    return replace(state, x=state.x + dt * v, v=v, **_deformed(model, state, k, vi, dt))
+    v, grad_v, _ = slot_sums(k, grid.v_new)
+    return replace(state, x=state.x + dt * v, v=v, **_deformed(model, state, grad_v, dt))
 
 
 def g2p_apic(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float) -> State:
     """APIC (UMLS eq. 49): v_p = sum w v~_i, B_p = sum w v~_i (x_i - x_p)^T."""
-    vi = gather(k, grid.v_new)
-    v = interpolate(k, vi)
-    B = moment(k, vi, k.offset_axes)
-    return replace(state, x=state.x + dt * v, v=v, affine=B, **_deformed(model, state, k, vi, dt))
+    v, grad_v, B = slot_sums(k, grid.v_new, moments=True)
+    return replace(state, x=state.x + dt * v, v=v, affine=B, **_deformed(model, state, grad_v, dt))
 
 
 def g2p_musl(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float) -> State:
@@ -113,7 +113,7 @@ def g2p_musl(model: Model, state: State, k: KernelResult, grid: Nodal, dt: float
     active = grid.mass > 0
     v_map = torch.where(active, momentum / torch.where(active, grid.mass, 1.0), 0.0)
     v_map = constrain(model, state, v_map, dt, active)
-    return replace(new, **_deformed(model, state, k, gather(k, v_map), dt))
+    return replace(new, **_deformed(model, state, slot_sums(k, v_map)[1], dt))
 
 
 SLOT_TRANSFERS = {  # transfer name -> (P2G, G2P)

@@ -1,0 +1,221 @@
+"""Compiled UMLS-MPM kernels: C with OpenMP (``csrc/umls.c``), built on first use, torch fallback.
+
+The UMLS kernel's per-particle work (1-ring offsets, B-spline sample weights times eta, the
+MLS moment matrix and its inverse, weights and gradients) is dozens of small elementwise torch
+operations over (P, K) slot arrays; written as one loop per particle it reads each slot once.
+:func:`umls_weights` runs it when a compiled library is available and the tensors are float64
+on the CPU; :func:`~datagen.mpm.kernels.umls_kernel` falls back to its torch code otherwise
+(the torch code is the reference the tests compare against).
+
+The library is compiled once per source, compiler and CPU with ``cc -O3 -march=native -fopenmp``
+(``CC`` picks the compiler) into ``$BSMS_CACHE/native`` (default ``~/.cache/bsms/native``),
+written under a temporary name and renamed, so concurrent first uses cannot see half a file.
+``BSMS_NATIVE=0`` turns it off. Without a working compiler the solver warns once and runs in
+torch.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+import torch
+
+__all__ = ["library", "available", "umls_weights", "p2g", "g2p", "locate_guess", "patch_average", "cache_dir"]
+
+SOURCE = Path(__file__).with_name("csrc") / "umls.c"
+BLOCKS = 4  # particle blocks of the node sums (csrc/umls.c): results do not depend on the thread count
+FLAGS = ("-O3", "-march=native", "-fPIC", "-shared", "-fopenmp")
+
+
+def cache_dir() -> Path:
+    """Where compiled libraries are kept: ``$BSMS_CACHE/native`` or ``~/.cache/bsms/native``."""
+    root = os.environ.get("BSMS_CACHE") or Path.home() / ".cache" / "bsms"
+    return Path(root) / "native"
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("model name", "flags")):
+                return line
+    except OSError:
+        pass
+    return platform.processor()
+
+
+def _compile(compiler: str, out: Path) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+    os.close(fd)
+    try:
+        for flags in (FLAGS, tuple(f for f in FLAGS if f not in ("-fopenmp", "-march=native"))):
+            done = subprocess.run([compiler, *flags, str(SOURCE), "-o", tmp, "-lm"], capture_output=True, text=True)
+            if done.returncode == 0:
+                os.replace(tmp, out)
+                return
+        raise OSError(f"{compiler} failed: {done.stderr.strip()[-500:]}")
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+@functools.cache
+def library() -> ctypes.CDLL | None:
+    """The compiled library (built into :func:`cache_dir` on first use), or None where it cannot be."""
+    if os.environ.get("BSMS_NATIVE", "1") == "0":
+        return None
+    compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        warnings.warn("no C compiler (cc) found: the UMLS kernel runs in torch, several times slower; "
+                      "install gcc, or set BSMS_NATIVE=0 to silence this", RuntimeWarning, stacklevel=2)
+        return None
+    key = hashlib.sha256("\n".join([SOURCE.read_text(), compiler, " ".join(FLAGS), platform.machine(),
+                                    _cpu_model()]).encode()).hexdigest()[:16]
+    path = cache_dir() / f"umls-{key}.so"
+    try:
+        if not path.is_file():
+            _compile(compiler, path)
+        lib = ctypes.CDLL(str(path))
+    except OSError as error:
+        warnings.warn(f"could not build the compiled UMLS kernel ({error}); it runs in torch, several times "
+                      "slower. Set BSMS_NATIVE=0 to silence this", RuntimeWarning, stacklevel=2)
+        return None
+    i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+    lib.bsms_umls_weights.argtypes = [i64, i64, i64, i64, f64] + [ptr] * 12 + [i64]
+    lib.bsms_umls_weights.restype = ctypes.c_int
+    lib.bsms_p2g.argtypes = [i64] * 4 + [ptr] * 10 + [i64]
+    lib.bsms_p2g.restype = ctypes.c_int
+    lib.bsms_g2p.argtypes = [i64] * 5 + [ptr] * 8 + [i64]
+    lib.bsms_g2p.restype = ctypes.c_int
+    lib.bsms_locate_guess.argtypes = [i64, i64, f64] + [ptr] * 6 + [i64]
+    lib.bsms_locate_guess.restype = ctypes.c_int
+    lib.bsms_patch_average.argtypes = [i64] * 3 + [ptr] * 7 + [i64]
+    lib.bsms_patch_average.restype = ctypes.c_int
+    return lib
+
+
+def available() -> bool:
+    """Whether the compiled kernels can be used (built, or buildable, here)."""
+    return library() is not None
+
+
+def _ptr(t: torch.Tensor) -> int:
+    """The address of t's data: bind t to a name first, so that it outlives the call."""
+    return t.data_ptr()
+
+
+def _check(code: int, what: str) -> None:
+    if code != 0:
+        raise ValueError(f"compiled {what}: unsupported shapes (dimension 1 to 3, at most 8 node fields)")
+
+
+def umls_weights(tables, x: torch.Tensor, location, eta: bool):
+    """The UMLS kernel's slots by the compiled loop, or None where it does not apply (no library,
+    not float64 on the CPU): index (P, K), weight (P, K), grad (d, P, K), offset (d, P, K) and
+    negative (P,) bool, the particles whose MLS weights are not all >= 0."""
+    if x.device.type != "cpu" or x.dtype != torch.float64 or tables.nodes.dtype != torch.float64:
+        return None
+    lib = library()
+    if lib is None:
+        return None
+    x = x.contiguous()
+    n, (_, k), d = x.shape[0], tables.ring.shape, tables.dim
+    index = torch.empty((n, k), dtype=torch.int64)
+    weight = torch.empty((n, k), dtype=torch.float64)
+    grad = torch.empty((d, n, k), dtype=torch.float64)
+    offset = torch.empty((d, n, k), dtype=torch.float64)
+    negative = torch.empty(n, dtype=torch.bool)
+    cell = location.cell.contiguous()
+    status = location.status.contiguous()
+    bary = location.bary.contiguous()
+    _check(lib.bsms_umls_weights(
+        n, k, d, int(eta), 1.0 / tables.h, _ptr(x), _ptr(cell), _ptr(status), _ptr(bary), _ptr(tables.ring),
+        _ptr(tables.ring_adjacency), _ptr(tables.nodes), _ptr(index), _ptr(weight), _ptr(grad), _ptr(offset),
+        _ptr(negative), torch.get_num_threads()), "UMLS kernel")
+    return index, weight, grad, offset, negative
+
+
+def _applies(*tensors: torch.Tensor) -> bool:
+    return all(t.device.type == "cpu" and t.dtype in (torch.float64, torch.int64) for t in tensors)
+
+
+def p2g(k, mass: torch.Tensor, v: torch.Tensor, coef: torch.Tensor, affine: torch.Tensor | None,
+        n_nodes: int) -> torch.Tensor | None:
+    """P2G sums (1+2d, N) [m, p, f_int] by the compiled loop over kernel slots, or None where it does
+    not apply. mass (P,), v (P, d), coef (P, d, d) = -V^0 times the force stress, affine (P, d, d):
+    the APIC C_p = B_p D_p^-1 (nodes see v_p + C_p (x_i - x_p)), or None."""
+    tensors = (k.index, k.weight, k.grad_axes, mass, v, coef) + ((affine,) if affine is not None else ())
+    lib = library() if _applies(*tensors) else None
+    if lib is None:
+        return None
+    (n, kk), d = k.index.shape, v.shape[1]
+    index, weight, grad = k.index.contiguous(), k.weight.contiguous(), k.grad_axes.contiguous()
+    offset = k.offset_axes.contiguous()
+    mass, v, coef = mass.contiguous(), v.contiguous(), coef.contiguous()
+    affine = affine.contiguous() if affine is not None else None
+    threads = torch.get_num_threads()
+    sums = torch.empty((1 + 2 * d, n_nodes), dtype=torch.float64)
+    scratch = torch.empty((BLOCKS, n_nodes, 1 + 2 * d), dtype=torch.float64)
+    _check(lib.bsms_p2g(n, kk, d, n_nodes, _ptr(index), _ptr(weight), _ptr(grad), _ptr(offset), _ptr(mass),
+                        _ptr(v), _ptr(coef), _ptr(affine) if affine is not None else None, _ptr(sums), _ptr(scratch),
+                        threads), "P2G")
+    return sums
+
+
+def g2p(k, field: torch.Tensor, moment: bool):
+    """G2P sums over kernel slots by the compiled loop, or None where it does not apply: for node
+    fields (c, N) (the first d of them velocities), (interp (P, c) = sum w f_i, grad_v (P, d, d) =
+    sum v_i grad w^T, B (P, d, d) = sum w v_i (x_i - x_p)^T or None)."""
+    lib = library() if _applies(k.index, k.weight, k.grad_axes, field) and field.shape[0] <= 8 else None
+    if lib is None:
+        return None
+    (n, kk), d, c = k.index.shape, k.grad_axes.shape[0], field.shape[0]
+    index, weight, grad = k.index.contiguous(), k.weight.contiguous(), k.grad_axes.contiguous()
+    offset, field = k.offset_axes.contiguous(), field.T.contiguous()  # node-major: one line per node
+    interp = torch.empty((n, c), dtype=torch.float64)
+    grad_v = torch.empty((n, d, d), dtype=torch.float64)
+    b = torch.empty((n, d, d), dtype=torch.float64) if moment else None
+    _check(lib.bsms_g2p(n, kk, d, field.shape[0], c, _ptr(index), _ptr(weight), _ptr(grad), _ptr(offset),
+                        _ptr(field), _ptr(interp), _ptr(grad_v), _ptr(b) if b is not None else None,
+                        torch.get_num_threads()), "G2P")
+    return interp, grad_v, b
+
+
+def locate_guess(locator, x: torch.Tensor, guess: torch.Tensor, tol: float):
+    """(cell (P,), bary (P, d+1)) of the particles inside their guessed cell (cell -1 and bary 0
+    elsewhere, and for non-finite positions) by the compiled loop, or None where it does not apply."""
+    lib = library() if _applies(x, guess, locator.corner) else None
+    if lib is None:
+        return None
+    x, guess = x.contiguous(), guess.contiguous()
+    n, d = x.shape
+    cell = torch.empty(n, dtype=torch.int64)
+    bary = torch.empty((n, d + 1), dtype=torch.float64)
+    _check(lib.bsms_locate_guess(n, d, tol, _ptr(x), _ptr(guess), _ptr(locator.corner), _ptr(locator.to_bary),
+                                 _ptr(cell), _ptr(bary), torch.get_num_threads()), "cell search")
+    return cell, bary
+
+
+def patch_average(k, value: torch.Tensor, volume: torch.Tensor, n_nodes: int) -> torch.Tensor | None:
+    """F-bar's patch average (:func:`~datagen.mpm.inelastic.patch_average`) by the compiled loops, or
+    None where it does not apply."""
+    lib = library() if _applies(k.index, k.weight, value, volume) else None
+    if lib is None:
+        return None
+    (n, kk), threads = k.index.shape, torch.get_num_threads()
+    index, weight, value, volume = k.index.contiguous(), k.weight.contiguous(), value.contiguous(), volume.contiguous()
+    scratch = torch.empty((BLOCKS, n_nodes, 2), dtype=torch.float64)
+    node = torch.empty(n_nodes, dtype=torch.float64)
+    out = torch.empty(n, dtype=torch.float64)
+    _check(lib.bsms_patch_average(n, kk, n_nodes, _ptr(index), _ptr(weight), _ptr(value), _ptr(volume),
+                                  _ptr(scratch), _ptr(node), _ptr(out), threads), "patch average")
+    return out
