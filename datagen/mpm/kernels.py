@@ -40,17 +40,28 @@ class KernelResult:
     """Kernel of P particles over padded slots of K nodes each.
 
     index: (P, K) int64 node ids, -1 for empty slots (and for every slot of a lost particle).
-    weight: (P, K) w_ip. grad_axes, offset_axes: (d, P, K) the components of grad w_ip and of
-    x_i - x_p (0 in empty slots), one contiguous block per axis. status: (P,) int8
-    LocateStatus codes. cell: (P,) containing cell on a mesh (-1 if lost), None on a grid.
+    weight: (P, K) w_ip. grad_axes: (d, P, K) the components of grad w_ip (0 in empty slots),
+    one contiguous block per axis. offsets: (d, P, K) the components of x_i - x_p likewise, or
+    None to compute them on first use of :attr:`offset_axes` from ``positions`` = (nodes by axis
+    (d, N), particles (P, d)) (only APIC reads them). status: (P,) int8 LocateStatus codes.
+    cell: (P,) containing cell on a mesh (-1 if lost), None on a grid.
     """
 
     index: torch.Tensor
     weight: torch.Tensor
     grad_axes: torch.Tensor
-    offset_axes: torch.Tensor
+    offsets: torch.Tensor | None
     status: torch.Tensor
     cell: torch.Tensor | None = None
+    positions: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    @property
+    def offset_axes(self) -> torch.Tensor:
+        """(d, P, K) the components of x_i - x_p (0 in empty slots)."""
+        if self.offsets is None:
+            nodes, x = self.positions
+            object.__setattr__(self, "offsets", _node_offsets(nodes, self.index, x).masked_fill_(self.index < 0, 0.0))
+        return self.offsets
 
     @property
     def grad(self) -> torch.Tensor:
@@ -321,24 +332,25 @@ def umls_kernel(mesh, x, eta: bool = True, *, nonnegative: bool = True, location
         location = locate(tables.locator, x, guess)
     cell = location.cell.clamp(min=0)
     compiled = native.umls_weights(tables, x, location, eta)
-    if compiled is not None:
-        index, weight, grad, r, negative = compiled
+    if compiled is not None:  # offsets are computed on first use (APIC)
+        (index, weight, grad, negative), r = compiled, None
         rows = negative.nonzero().squeeze(1) if nonnegative else None
     else:
         index = _gather_rows(tables.ring, cell)
         index = index.masked_fill_((location.status != LocateStatus.INSIDE)[:, None], -1)
-        r = _node_offsets(tables, index, x)
+        r = _node_offsets(tables.nodes_by_axis, index, x)
         d = _sample_weights(tables, r, index, cell, location.bary, eta)
         weight, grad = mls_linear_weights(d, r)
         rows = (weight < 0).any(dim=1).nonzero().squeeze(1) if nonnegative else None
         r.masked_fill_(index < 0, 0.0)
     if rows is not None and rows.numel():
-        rows_r = r.index_select(1, rows)
+        rows_r = (r.index_select(1, rows) if r is not None
+                  else _node_offsets(tables.nodes_by_axis, index[rows], x[rows]).masked_fill_(index[rows] < 0, 0.0))
         d_rows = _sample_weights(tables, rows_r, index[rows], cell[rows], location.bary[rows], eta)
         start = _barycentric_in_ring(tables, index[rows], cell[rows], location.bary[rows])
         weight[rows], grad[:, rows] = nonnegative_mls(d_rows, rows_r, *start, mls_weight=weight[rows])
-    return KernelResult(index=index, weight=weight, grad_axes=grad, offset_axes=r, status=location.status,
-                        cell=location.cell)
+    return KernelResult(index=index, weight=weight, grad_axes=grad, offsets=r, status=location.status,
+                        cell=location.cell, positions=(tables.nodes_by_axis, x))
 
 
 def _sample_weights(tables: MeshTables, r: torch.Tensor, index: torch.Tensor, cell: torch.Tensor,
@@ -357,13 +369,15 @@ def _sample_weights(tables: MeshTables, r: torch.Tensor, index: torch.Tensor, ce
     return d
 
 
-def _node_offsets(tables: MeshTables, index: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """(d, P, K) components of x_i - x_p for the nodes in ``index`` (-1 slots: node 0)."""
+def _node_offsets(nodes_by_axis: torch.Tensor, index: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """(d, P, K) components of x_i - x_p for the nodes in ``index`` (-1 slots: node 0);
+    nodes_by_axis: (d, N)."""
     flat = index.clamp(min=0).reshape(-1)
-    r = torch.empty((tables.dim, flat.numel()), dtype=x.dtype, device=x.device)
-    for a, row in enumerate(tables.nodes_by_axis):
+    dim = nodes_by_axis.shape[0]
+    r = torch.empty((dim, flat.numel()), dtype=x.dtype, device=x.device)
+    for a, row in enumerate(nodes_by_axis):
         torch.index_select(row, 0, flat, out=r[a])
-    return r.view((tables.dim,) + index.shape).sub_(x.T[:, :, None])
+    return r.view((dim,) + index.shape).sub_(x.T[:, :, None])
 
 
 def linear_kernel(mesh, x, *, location: Location | None = None,
@@ -381,7 +395,7 @@ def linear_kernel(mesh, x, *, location: Location | None = None,
     corners = _gather_rows(tables.nodes, _gather_rows(tables.cells, cell))  # (P, d+1, d)
     offset = (corners - x[:, None, :]).permute(2, 0, 1) * inside
     return KernelResult(index=index, weight=weight, grad_axes=grad.contiguous(),
-                        offset_axes=offset.contiguous(), status=location.status, cell=location.cell)
+                        offsets=offset.contiguous(), status=location.status, cell=location.cell)
 
 
 # ----------------------------------------------------------------------------- structured grid
@@ -452,4 +466,4 @@ def bspline_kernel(grid: Grid, x: torch.Tensor) -> KernelResult:
     status = torch.full_like(index[:, 0], int(LocateStatus.INSIDE), dtype=torch.int8)
     status[~inside] = int(LocateStatus.OUTSIDE)
     status[~finite] = int(LocateStatus.NONFINITE)
-    return KernelResult(index=index, weight=weight, grad_axes=grad, offset_axes=offset, status=status)
+    return KernelResult(index=index, weight=weight, grad_axes=grad, offsets=offset, status=status)

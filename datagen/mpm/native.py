@@ -113,6 +113,10 @@ def _ptr(t: torch.Tensor) -> int:
     return t.data_ptr()
 
 
+def _maybe(t: torch.Tensor | None) -> int | None:
+    return None if t is None else t.data_ptr()
+
+
 def _check(code: int, what: str) -> None:
     if code != 0:
         raise ValueError(f"compiled {what}: unsupported shapes (dimension 1 to 3, at most 8 node fields)")
@@ -120,7 +124,7 @@ def _check(code: int, what: str) -> None:
 
 def umls_weights(tables, x: torch.Tensor, location, eta: bool):
     """The UMLS kernel's slots by the compiled loop, or None where it does not apply (no library,
-    not float64 on the CPU): index (P, K), weight (P, K), grad (d, P, K), offset (d, P, K) and
+    not float64 on the CPU): index (P, K), weight (P, K), grad (d, P, K) and
     negative (P,) bool, the particles whose MLS weights are not all >= 0."""
     if x.device.type != "cpu" or x.dtype != torch.float64 or tables.nodes.dtype != torch.float64:
         return None
@@ -132,16 +136,15 @@ def umls_weights(tables, x: torch.Tensor, location, eta: bool):
     index = torch.empty((n, k), dtype=torch.int64)
     weight = torch.empty((n, k), dtype=torch.float64)
     grad = torch.empty((d, n, k), dtype=torch.float64)
-    offset = torch.empty((d, n, k), dtype=torch.float64)
     negative = torch.empty(n, dtype=torch.bool)
     cell = location.cell.contiguous()
     status = location.status.contiguous()
     bary = location.bary.contiguous()
     _check(lib.bsms_umls_weights(
         n, k, d, int(eta), 1.0 / tables.h, _ptr(x), _ptr(cell), _ptr(status), _ptr(bary), _ptr(tables.ring),
-        _ptr(tables.ring_adjacency), _ptr(tables.nodes), _ptr(index), _ptr(weight), _ptr(grad), _ptr(offset),
+        _ptr(tables.ring_adjacency), _ptr(tables.nodes), _ptr(index), _ptr(weight), _ptr(grad), None,
         _ptr(negative), torch.get_num_threads()), "UMLS kernel")
-    return index, weight, grad, offset, negative
+    return index, weight, grad, negative
 
 
 def _applies(*tensors: torch.Tensor) -> bool:
@@ -159,14 +162,14 @@ def p2g(k, mass: torch.Tensor, v: torch.Tensor, coef: torch.Tensor, affine: torc
         return None
     (n, kk), d = k.index.shape, v.shape[1]
     index, weight, grad = k.index.contiguous(), k.weight.contiguous(), k.grad_axes.contiguous()
-    offset = k.offset_axes.contiguous()
+    offset = k.offset_axes.contiguous() if affine is not None else None  # APIC only
     mass, v, coef = mass.contiguous(), v.contiguous(), coef.contiguous()
     affine = affine.contiguous() if affine is not None else None
     threads = torch.get_num_threads()
     sums = torch.empty((1 + 2 * d, n_nodes), dtype=torch.float64)
     scratch = torch.empty((BLOCKS, n_nodes, 1 + 2 * d), dtype=torch.float64)
-    _check(lib.bsms_p2g(n, kk, d, n_nodes, _ptr(index), _ptr(weight), _ptr(grad), _ptr(offset), _ptr(mass),
-                        _ptr(v), _ptr(coef), _ptr(affine) if affine is not None else None, _ptr(sums), _ptr(scratch),
+    _check(lib.bsms_p2g(n, kk, d, n_nodes, _ptr(index), _ptr(weight), _ptr(grad), _maybe(offset), _ptr(mass),
+                        _ptr(v), _ptr(coef), _maybe(affine), _ptr(sums), _ptr(scratch),
                         threads), "P2G")
     return sums
 
@@ -180,12 +183,13 @@ def g2p(k, field: torch.Tensor, moment: bool):
         return None
     (n, kk), d, c = k.index.shape, k.grad_axes.shape[0], field.shape[0]
     index, weight, grad = k.index.contiguous(), k.weight.contiguous(), k.grad_axes.contiguous()
-    offset, field = k.offset_axes.contiguous(), field.T.contiguous()  # node-major: one line per node
+    offset = k.offset_axes.contiguous() if moment else None  # APIC only
+    field = field.T.contiguous()  # node-major: one line per node
     interp = torch.empty((n, c), dtype=torch.float64)
     grad_v = torch.empty((n, d, d), dtype=torch.float64)
     b = torch.empty((n, d, d), dtype=torch.float64) if moment else None
-    _check(lib.bsms_g2p(n, kk, d, field.shape[0], c, _ptr(index), _ptr(weight), _ptr(grad), _ptr(offset),
-                        _ptr(field), _ptr(interp), _ptr(grad_v), _ptr(b) if b is not None else None,
+    _check(lib.bsms_g2p(n, kk, d, field.shape[0], c, _ptr(index), _ptr(weight), _ptr(grad),
+                        _maybe(offset), _ptr(field), _ptr(interp), _ptr(grad_v), _maybe(b),
                         torch.get_num_threads()), "G2P")
     return interp, grad_v, b
 

@@ -36,10 +36,10 @@ def _p2g(model: Model, state: State, k: KernelResult, affine: torch.Tensor | Non
     compiled = native.p2g(k, state.mass, state.v, coef, affine, model.n_nodes)
     if compiled is not None:
         return compiled
-    r = k.offset_axes
     if affine is None:
         velocity = state.v.T[:, :, None]
     else:
+        r = k.offset_axes
         velocity = [state.v[:, a, None] + sum(affine[:, a, b, None] * r[b] for b in range(d)) for a in range(d)]
     wm = k.weight * state.mass[:, None]
     g = k.grad_axes

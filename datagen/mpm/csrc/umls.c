@@ -37,7 +37,7 @@ static inline void inverse(int d, const double q[3][3], double out[3][3]) {
 
 /* Kernel: x (P, d); cell (P); status (P) int8, 0 = inside; bary (P, d+1); ring (C, K), left-packed;
  * adjacency (C, d+1, K) uint8; nodes (N, d) -> index (P, K), weight (P, K), grad (d, P, K),
- * offset (d, P, K), negative (P) uint8: the particles with a negative MLS weight. */
+ * offset (d, P, K) (NULL: not written), negative (P) uint8: the particles with a negative MLS weight. */
 
 int bsms_umls_weights(int64_t P, int64_t K, int64_t d, int64_t use_eta, double inv_h,
                       const double *restrict x, const int64_t *restrict cell, const int8_t *restrict status,
@@ -86,7 +86,7 @@ int bsms_umls_weights(int64_t P, int64_t K, int64_t d, int64_t use_eta, double i
                 s[k] = w;
                 total += w;
             }
-            for (int a = 0; a < d; a++) {
+            for (int a = 0; offset && a < d; a++) {
                 double *op = offset + a * PK + p * K;
                 for (int64_t k = 0; k < used; k++) op[k] = r[a][k];
                 for (int64_t k = used; k < K; k++) op[k] = 0.0;
@@ -256,6 +256,10 @@ int bsms_locate_guess(int64_t P, int64_t d, double tol, const double *restrict x
     if (d < 1 || d > 3) return 1;
 #pragma omp parallel for schedule(static) num_threads(threads)
     for (int64_t p = 0; p < P; p++) {
+        if (p + AHEAD < P && guess[p + AHEAD] >= 0) {  /* cells are scattered in memory: fetch early */
+            __builtin_prefetch(to_bary + guess[p + AHEAD] * d * d);
+            __builtin_prefetch(corner + guess[p + AHEAD] * d);
+        }
         const int64_t c = guess[p];
         double b[4] = {1.0, 0.0, 0.0, 0.0}, lowest = INFINITY;
         int finite = 1;
