@@ -9,7 +9,8 @@ threads) runs on the same particle counts in the benchmark's own environment: th
 if it has taichi, else a venv made at ``--taichi-env`` on first use (taichi is never a
 dependency of the package). Ends with exactly
 ``throughput 3D: UMLS U M/s, taichi T M/s`` (particle-steps per second, kernel rebuilt every
-step, the largest 3D size, same run).
+step, the largest 3D size, same run). The solver's per-particle loops are the compiled ones of
+:mod:`datagen.mpm.native` where a C compiler is available (``BSMS_NATIVE=0`` times the torch code).
 
 By default glibc's malloc is told to keep freed memory (large mmap and trim thresholds, the
 same as exporting MALLOC_MMAP_THRESHOLD_ / MALLOC_TRIM_THRESHOLD_): torch on CPU allocates
@@ -38,7 +39,7 @@ from taichi_mpm import DENSITY, NU, E, block
 
 from datagen import shapes
 from datagen.layer import with_extra_layer
-from datagen.mpm import Model, State, cfl_time_step, step
+from datagen.mpm import Model, State, cfl_time_step, native, step
 from datagen.mpm.kernels import Grid, MeshTables
 from datagen.mpm.materials import NeoHookean
 
@@ -145,7 +146,8 @@ def main() -> None:
     tuned = False if args.default_malloc else keep_freed_memory()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    print(f"torch threads: {torch.get_num_threads()}, device: {device}, malloc keeps freed memory: {tuned}")
+    print(f"torch threads: {torch.get_num_threads()}, device: {device}, malloc keeps freed memory: {tuned}, "
+          f"compiled loops: {native.available()}")
     python = None if args.no_taichi or device.type != "cpu" else taichi_python(args.taichi_env)
     if python is None and not args.no_taichi:
         print(f"the taichi comparison runs on the CPU only: skipped on {device}")
