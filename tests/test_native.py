@@ -15,7 +15,12 @@ from datagen.mpm.kernels import Grid, MeshTables, bspline_kernel, umls_kernel
 from datagen.mpm.locate import locate
 from datagen.mpm.slots import scatter, slot_sums
 
-pytestmark = pytest.mark.skipif(not native.available(), reason="no C compiler here: the torch path is the only one")
+
+def test_the_compiled_library_builds_here():
+    """The fast path must not fall back silently where the project runs (CI has gcc)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a failed build warns: fail with its message instead
+        assert native.available(), "no compiled library: install a C compiler (gcc) or see datagen.mpm.native"
 
 
 @pytest.fixture

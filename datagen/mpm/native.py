@@ -90,7 +90,7 @@ def library() -> ctypes.CDLL | None:
                       "slower. Set BSMS_NATIVE=0 to silence this", RuntimeWarning, stacklevel=2)
         return None
     i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
-    lib.bsms_umls_weights.argtypes = [i64, i64, i64, i64, f64] + [ptr] * 12 + [i64]
+    lib.bsms_umls_weights.argtypes = [i64, i64, i64, i64, f64] + [ptr] * 11 + [i64]
     lib.bsms_umls_weights.restype = ctypes.c_int
     lib.bsms_p2g.argtypes = [i64] * 4 + [ptr] * 10 + [i64]
     lib.bsms_p2g.restype = ctypes.c_int
@@ -142,7 +142,7 @@ def umls_weights(tables, x: torch.Tensor, location, eta: bool):
     bary = location.bary.contiguous()
     _check(lib.bsms_umls_weights(
         n, k, d, int(eta), 1.0 / tables.h, _ptr(x), _ptr(cell), _ptr(status), _ptr(bary), _ptr(tables.ring),
-        _ptr(tables.ring_adjacency), _ptr(tables.nodes), _ptr(index), _ptr(weight), _ptr(grad), None,
+        _ptr(tables.ring_adjacency), _ptr(tables.nodes), _ptr(index), _ptr(weight), _ptr(grad),
         _ptr(negative), torch.get_num_threads()), "UMLS kernel")
     return index, weight, grad, negative
 

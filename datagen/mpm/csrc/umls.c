@@ -37,14 +37,14 @@ static inline void inverse(int d, const double q[3][3], double out[3][3]) {
 
 /* Kernel: x (P, d); cell (P); status (P) int8, 0 = inside; bary (P, d+1); ring (C, K), left-packed;
  * adjacency (C, d+1, K) uint8; nodes (N, d) -> index (P, K), weight (P, K), grad (d, P, K),
- * offset (d, P, K) (NULL: not written), negative (P) uint8: the particles with a negative MLS weight. */
-
+ * negative (P) uint8: the particles with a negative MLS weight. The offsets x_i - x_p are not
+ * written: only APIC reads them, and KernelResult computes them on first use. */
 int bsms_umls_weights(int64_t P, int64_t K, int64_t d, int64_t use_eta, double inv_h,
                       const double *restrict x, const int64_t *restrict cell, const int8_t *restrict status,
                       const double *restrict bary, const int64_t *restrict ring,
                       const uint8_t *restrict adjacency, const double *restrict nodes,
                       int64_t *restrict index, double *restrict weight, double *restrict grad,
-                      double *restrict offset, uint8_t *restrict negative, int64_t threads) {
+                      uint8_t *restrict negative, int64_t threads) {
     if (d < 1 || d > 3) return 1;
     const int64_t PK = P * K;
 #pragma omp parallel num_threads(threads)
@@ -85,11 +85,6 @@ int bsms_umls_weights(int64_t P, int64_t K, int64_t d, int64_t use_eta, double i
                 }
                 s[k] = w;
                 total += w;
-            }
-            for (int a = 0; offset && a < d; a++) {
-                double *op = offset + a * PK + p * K;
-                for (int64_t k = 0; k < used; k++) op[k] = r[a][k];
-                for (int64_t k = used; k < K; k++) op[k] = 0.0;
             }
             if (!(total > 0.0)) {  /* lost particle: zero kernel */
                 for (int64_t k = 0; k < K; k++) wp[k] = 0.0;
