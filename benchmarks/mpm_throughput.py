@@ -176,8 +176,8 @@ def main() -> None:
     largest = max(r["particles"] for r in rows if r["dim"] == 3 and r["kind"] == "umls")
     umls = next(r for r in rows if r["dim"] == 3 and r["kind"] == "umls" and r["particles"] == largest)
     ti_3d = next((t for t in taichi if t["dim"] == 3 and t["particles"] == largest), None)
-    ti_text = "n/a" if ti_3d is None else f"{ti_3d['particle_steps_per_s'] / 1e6:.3g}"
-    print(f"throughput 3D: UMLS {umls['particle_steps_per_s'] / 1e6:.3g} M/s, taichi {ti_text} M/s")
+    ti_text = "n/a" if ti_3d is None else f"{ti_3d['particle_steps_per_s'] / 1e6:#.3g}"
+    print(f"throughput 3D: UMLS {umls['particle_steps_per_s'] / 1e6:#.3g} M/s, taichi {ti_text} M/s")
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ from datagen.layer import with_extra_layer
 from datagen.mesh import Mesh
 from datagen.mpm import native
 from datagen.mpm.inelastic import patch_average
-from datagen.mpm.kernels import Grid, MeshTables, bspline_kernel, umls_kernel
+from datagen.mpm.kernels import Grid, MeshTables, bspline_kernel, umls_kernel, umls_kernel_p2g
 from datagen.mpm.locate import locate
 from datagen.mpm.slots import scatter, slot_sums
 
@@ -130,6 +130,45 @@ def test_compiled_sums_do_not_depend_on_the_thread_count_and_conserve_mass_and_m
     # with APIC the affine part sums to C_p sum_i w (x_i - x_p) = 0 (linear reproduction)
     momentum = (mass[:, None] * v).sum(0)
     assert float((first[1:4].sum(1) - momentum).abs().max()) < 1e-11 * float((mass[:, None] * v.abs()).sum())
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("layer", [True, False])
+def test_fused_kernel_and_p2g_equal_the_kernel_then_p2g(dim, layer, torch_only):
+    """umls_kernel_p2g: the same kernel as umls_kernel, and its sums plus the share of the particles
+    it left out (those whose kernel was made non-negative) equal the compiled P2G of that kernel
+    and the torch P2G; lost particles add nothing. Without the extra layer boundary particles are
+    left out; the sums do not depend on the thread count."""
+    mesh = shapes.rectangle(1.0, 0.7, 0.1) if dim == 2 else shapes.box((1.0, 0.8, 0.6), 0.2)
+    tables = MeshTables.build(with_extra_layer(mesh) if layer else mesh)
+    x = _particles(mesh, 2500, seed=dim)
+    g = torch.Generator().manual_seed(dim)
+    mass = torch.rand(len(x), generator=g, dtype=torch.float64) + 0.5
+    v, coef = torch.randn(len(x), dim, generator=g, dtype=torch.float64), torch.randn(len(x), dim, dim, generator=g,
+                                                                                        dtype=torch.float64)
+    before = torch.get_num_threads()
+    try:
+        runs = []
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            runs.append(umls_kernel_p2g(tables, x, mass, v, coef, tables.n_nodes))
+    finally:
+        torch.set_num_threads(before)
+    (k, sums, left_out), (_, sums2, left_out2) = runs
+    assert torch.equal(sums, sums2) and torch.equal(left_out, left_out2)
+    plain = umls_kernel(tables, x)
+    assert torch.equal(k.index, plain.index) and torch.equal(k.weight, plain.weight)
+    assert torch.equal(k.grad_axes, plain.grad_axes) and k.n_lost >= 3
+    negative = (umls_kernel(tables, x, nonnegative=False).weight < 0).any(1).nonzero().squeeze(1)
+    assert torch.equal(left_out, negative) and (layer or len(left_out) > 0)
+    rows = k.select(left_out)
+    total = sums + native.p2g(rows, mass[left_out], v[left_out], coef[left_out], None, tables.n_nodes)
+    reference = native.p2g(k, mass, v, coef, None, tables.n_nodes)
+    in_torch = _torch_p2g(k, mass, v, coef, None, tables.n_nodes)
+    scale = float(in_torch.abs().max())
+    assert float((total - reference).abs().max()) < 1e-13 * scale  # measured ~1e-16
+    assert float((total - in_torch).abs().max()) < 1e-13 * scale
+    assert torch_only(lambda: umls_kernel_p2g(tables, x, mass, v, coef, tables.n_nodes))[1:] == (None, None)
 
 
 def test_grid_kernels_use_the_compiled_transfers_too(torch_only):

@@ -28,7 +28,7 @@ from . import linalg, native
 from .locate import CellLocator, LocateStatus, Location, locate
 
 __all__ = [
-    "KernelResult", "MeshTables", "Grid", "umls_kernel", "linear_kernel", "bspline_kernel",
+    "KernelResult", "MeshTables", "Grid", "umls_kernel", "umls_kernel_p2g", "linear_kernel", "bspline_kernel",
     "quadratic_bspline", "mls_linear_weights", "nonnegative_mls",
 ]
 
@@ -76,6 +76,14 @@ class KernelResult:
     @property
     def n_lost(self) -> int:
         return int((self.status != LocateStatus.INSIDE).sum())
+
+    def select(self, rows: torch.Tensor) -> KernelResult:
+        """The kernel of the particles ``rows`` (an index tensor) only."""
+        offsets = self.offsets[:, rows] if self.offsets is not None else None
+        positions = (self.positions[0], self.positions[1][rows]) if self.positions is not None else None
+        return KernelResult(index=self.index[rows], weight=self.weight[rows], grad_axes=self.grad_axes[:, rows],
+                            offsets=offsets, status=self.status[rows],
+                            cell=self.cell[rows] if self.cell is not None else None, positions=positions)
 
 
 # ----------------------------------------------------------------------------- mesh tables
@@ -326,15 +334,34 @@ def umls_kernel(mesh, x, eta: bool = True, *, nonnegative: bool = True, location
     mesh: Mesh, ExtendedMesh or MeshTables. location: a precomputed :func:`locate` result
     for ``x``; guess: (P,) cells to try first when locating.
     """
+    return _umls_kernel(mesh, x, eta, nonnegative, location, guess)[0]
+
+
+def umls_kernel_p2g(mesh, x, mass: torch.Tensor, v: torch.Tensor, coef: torch.Tensor, n_nodes: int, *,
+                    guess: torch.Tensor | None = None):
+    """:func:`umls_kernel` (eta, non-negative) and, where the compiled loops run, the FLIP/PIC P2G
+    sums [m, p, f_int] (1+2d, N) of particles with mass (P,), velocity (P, d) and
+    coef = -V^0 times the force stress (P, d, d), summed in the same pass over the particles.
+    Returns (kernel, sums, left_out): the particles whose MLS kernel was replaced by its
+    non-negative one are left out of the sums (the caller adds them with the final kernel);
+    sums and left_out are None where the loops are not compiled."""
+    return _umls_kernel(mesh, x, True, True, None, guess, (mass, v, coef, n_nodes))
+
+
+def _umls_kernel(mesh, x, eta: bool, nonnegative: bool, location: Location | None, guess: torch.Tensor | None,
+                 p2g: tuple | None = None):
     tables = _as_tables(mesh)
     x = _as_positions(x, tables.nodes)
     if location is None:
         location = locate(tables.locator, x, guess)
     cell = location.cell.clamp(min=0)
-    compiled = native.umls_weights(tables, x, location, eta)
+    compiled = native.umls_weights(tables, x, location, eta, p2g)
+    sums = left_out = None
     if compiled is not None:  # offsets are computed on first use (APIC)
-        (index, weight, grad, negative), r = compiled, None
-        rows = negative.nonzero().squeeze(1) if nonnegative else None
+        (index, weight, grad, negative), r = compiled[:4], None
+        if p2g is not None:
+            sums, left_out = compiled[4], negative.nonzero().squeeze(1)
+        rows = (left_out if left_out is not None else negative.nonzero().squeeze(1)) if nonnegative else None
     else:
         index = _gather_rows(tables.ring, cell)
         index = index.masked_fill_((location.status != LocateStatus.INSIDE)[:, None], -1)
@@ -349,8 +376,9 @@ def umls_kernel(mesh, x, eta: bool = True, *, nonnegative: bool = True, location
         d_rows = _sample_weights(tables, rows_r, index[rows], cell[rows], location.bary[rows], eta)
         start = _barycentric_in_ring(tables, index[rows], cell[rows], location.bary[rows])
         weight[rows], grad[:, rows] = nonnegative_mls(d_rows, rows_r, *start, mls_weight=weight[rows])
-    return KernelResult(index=index, weight=weight, grad_axes=grad, offsets=r, status=location.status,
-                        cell=location.cell, positions=(tables.nodes_by_axis, x))
+    k = KernelResult(index=index, weight=weight, grad_axes=grad, offsets=r, status=location.status,
+                     cell=location.cell, positions=(tables.nodes_by_axis, x))
+    return k, sums, left_out
 
 
 def _sample_weights(tables: MeshTables, r: torch.Tensor, index: torch.Tensor, cell: torch.Tensor,

@@ -92,6 +92,8 @@ def library() -> ctypes.CDLL | None:
     i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
     lib.bsms_umls_weights.argtypes = [i64, i64, i64, i64, f64] + [ptr] * 11 + [i64]
     lib.bsms_umls_weights.restype = ctypes.c_int
+    lib.bsms_umls_p2g.argtypes = [i64, i64, i64, i64, f64] + [ptr] * 11 + [i64] + [ptr] * 5 + [i64]
+    lib.bsms_umls_p2g.restype = ctypes.c_int
     lib.bsms_p2g.argtypes = [i64] * 4 + [ptr] * 10 + [i64]
     lib.bsms_p2g.restype = ctypes.c_int
     lib.bsms_g2p.argtypes = [i64] * 5 + [ptr] * 8 + [i64]
@@ -122,11 +124,17 @@ def _check(code: int, what: str) -> None:
         raise ValueError(f"compiled {what}: unsupported shapes (dimension 1 to 3, at most 8 node fields)")
 
 
-def umls_weights(tables, x: torch.Tensor, location, eta: bool):
+def umls_weights(tables, x: torch.Tensor, location, eta: bool, p2g: tuple | None = None):
     """The UMLS kernel's slots by the compiled loop, or None where it does not apply (no library,
     not float64 on the CPU): index (P, K), weight (P, K), grad (d, P, K) and
-    negative (P,) bool, the particles whose MLS weights are not all >= 0."""
+    negative (P,) bool, the particles whose MLS weights are not all >= 0.
+
+    p2g: (mass (P,), v (P, d), coef (P, d, d), n_nodes) to sum FLIP/PIC P2G (as :func:`p2g` with no
+    affine) in the same pass; the sums (1+2d, N) are then returned fifth. They leave out the
+    particles marked negative, whose kernel the caller replaces and whose share it adds."""
     if x.device.type != "cpu" or x.dtype != torch.float64 or tables.nodes.dtype != torch.float64:
+        return None
+    if p2g is not None and not _applies(*p2g[:3]):
         return None
     lib = library()
     if lib is None:
@@ -140,11 +148,19 @@ def umls_weights(tables, x: torch.Tensor, location, eta: bool):
     cell = location.cell.contiguous()
     status = location.status.contiguous()
     bary = location.bary.contiguous()
-    _check(lib.bsms_umls_weights(
-        n, k, d, int(eta), 1.0 / tables.h, _ptr(x), _ptr(cell), _ptr(status), _ptr(bary), _ptr(tables.ring),
-        _ptr(tables.ring_adjacency), _ptr(tables.nodes), _ptr(index), _ptr(weight), _ptr(grad),
-        _ptr(negative), torch.get_num_threads()), "UMLS kernel")
-    return index, weight, grad, negative
+    common = (n, k, d, int(eta), 1.0 / tables.h, _ptr(x), _ptr(cell), _ptr(status), _ptr(bary), _ptr(tables.ring),
+              _ptr(tables.ring_adjacency), _ptr(tables.nodes), _ptr(index), _ptr(weight), _ptr(grad),
+              _ptr(negative))
+    if p2g is None:
+        _check(lib.bsms_umls_weights(*common, torch.get_num_threads()), "UMLS kernel")
+        return index, weight, grad, negative
+    mass, v, coef = (t.contiguous() for t in p2g[:3])
+    n_nodes = p2g[3]
+    sums = torch.empty((1 + 2 * d, n_nodes), dtype=torch.float64)
+    scratch = torch.empty((BLOCKS, n_nodes, 1 + 2 * d), dtype=torch.float64)
+    _check(lib.bsms_umls_p2g(*common, n_nodes, _ptr(mass), _ptr(v), _ptr(coef), _ptr(sums), _ptr(scratch),
+                             torch.get_num_threads()), "UMLS kernel and P2G")
+    return index, weight, grad, negative, sums
 
 
 def _applies(*tensors: torch.Tensor) -> bool:

@@ -13,11 +13,11 @@ from dataclasses import replace
 from .errors import check_finite, lost_particles
 from .inelastic import post_process
 from .kernels import KernelResult
-from .model import Model, compute_kernel
+from .model import Model
 from .nodal import move_grips, nodal_update
 from .reference import reference_step
 from .state import State
-from .transfers import SLOT_TRANSFERS
+from .transfers import SLOT_TRANSFERS, kernel_and_p2g
 
 __all__ = ["step", "eulerian_step", "cfl_time_step"]
 
@@ -36,11 +36,13 @@ def step(model: Model, state: State, dt: float, kernel: KernelResult | None = No
 
 def eulerian_step(model: Model, state: State, dt: float, kernel: KernelResult | None = None) -> State:
     """UMLS Algorithm 1 with the kernel at the current positions (s = n)."""
-    k = kernel if kernel is not None else compute_kernel(model, state.x, state.cell)  # line 1
+    p2g, g2p = SLOT_TRANSFERS[model.transfer]
+    # line 1, the kernel; lines 2-3, P2G: [m_i, p_i, f_int_i] (in one pass where compiled)
+    k, sums = kernel_and_p2g(model, state) if kernel is None else (kernel, None)
     if k.n_lost:
         raise lost_particles(model, state, k, dt)
-    p2g, g2p = SLOT_TRANSFERS[model.transfer]
-    sums = p2g(model, state, k)  # lines 2-3: [m_i, p_i, f_int_i]
+    if sums is None:
+        sums = p2g(model, state, k)
     grid = nodal_update(model, state, k, sums, dt)  # lines 4-6: gravity, v~_i, boundary conditions
     new = move_grips(model, state, g2p(model, state, k, grid, dt), dt)  # lines 7-9: v_p, x_p, F_p
     new = post_process(model, state, new, k)  # F-bar, plastic return map

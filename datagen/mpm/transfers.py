@@ -14,14 +14,14 @@ import torch
 
 from . import linalg, native
 from .boundary import fold_mirrors
-from .kernels import KernelResult
-from .model import Model
+from .kernels import KernelResult, umls_kernel_p2g
+from .model import Model, compute_kernel
 from .nodal import Nodal, constrain, index_conditions
 from .slots import apic_inertia, scatter, slot_sums
 from .state import State
 from .stress import force_stress
 
-__all__ = ["SLOT_TRANSFERS", "p2g_plain", "p2g_apic", "g2p_flip", "g2p_pic", "g2p_apic", "g2p_musl"]
+__all__ = ["SLOT_TRANSFERS", "kernel_and_p2g", "p2g_plain", "p2g_apic", "g2p_flip", "g2p_pic", "g2p_apic", "g2p_musl"]
 
 
 def _p2g(model: Model, state: State, k: KernelResult, affine: torch.Tensor | None = None) -> torch.Tensor:
@@ -31,24 +31,55 @@ def _p2g(model: Model, state: State, k: KernelResult, affine: torch.Tensor | Non
     f_int_i = -sum_p V_p^0 tau_p grad w_ip with tau = J sigma the Kirchhoff stress (in a
     reference configuration: tau_p (F_p^{sn})^-T grad_s w_ip, see :func:`force_stress`).
     """
-    d = model.dim
-    coef = force_stress(model, state) * (-state.volume0[:, None, None])
-    compiled = native.p2g(k, state.mass, state.v, coef, affine, model.n_nodes)
+    return _p2g_sums(k, state.mass, state.v, _force_coef(model, state), affine, model.n_nodes)
+
+
+def _force_coef(model: Model, state: State) -> torch.Tensor:
+    """(P, d, d) -V_p^0 times the force stress: f_int_i = sum_p coef_p grad w_ip."""
+    return force_stress(model, state) * (-state.volume0[:, None, None])
+
+
+def _p2g_sums(k: KernelResult, mass: torch.Tensor, v: torch.Tensor, coef: torch.Tensor,
+              affine: torch.Tensor | None, n_nodes: int) -> torch.Tensor:
+    compiled = native.p2g(k, mass, v, coef, affine, n_nodes)
     if compiled is not None:
         return compiled
+    d = v.shape[1]
     if affine is None:
-        velocity = state.v.T[:, :, None]
+        velocity = v.T[:, :, None]
     else:
         r = k.offset_axes
-        velocity = [state.v[:, a, None] + sum(affine[:, a, b, None] * r[b] for b in range(d)) for a in range(d)]
-    wm = k.weight * state.mass[:, None]
+        velocity = [v[:, a, None] + sum(affine[:, a, b, None] * r[b] for b in range(d)) for a in range(d)]
+    wm = k.weight * mass[:, None]
     g = k.grad_axes
     values = wm.new_empty((1 + 2 * d,) + wm.shape)
     values[0] = wm
     for a in range(d):
         values[1 + a] = wm * velocity[a]
         values[1 + d + a] = sum(coef[:, a, b, None] * g[b] for b in range(d))
-    return scatter(k, values, model.n_nodes)
+    return scatter(k, values, n_nodes)
+
+
+def kernel_and_p2g(model: Model, state: State) -> tuple[KernelResult, torch.Tensor]:
+    """The kernel at the particles' positions and the P2G sums of the model's transfer (UMLS
+    Algorithm 1 lines 1-3). With the UMLS kernel, a P2G without an affine part (FLIP, PIC, MUSL)
+    and the compiled loops, both are made in one pass over the particles
+    (:func:`~datagen.mpm.kernels.umls_kernel_p2g`: the sums of each particle's slots are taken
+    while they are in cache) and only the particles whose kernel was made non-negative are
+    summed again; otherwise the kernel, then the P2G."""
+    p2g = SLOT_TRANSFERS[model.transfer][0]
+    if model.kernel == "umls" and p2g is p2g_plain and native.available():
+        coef = _force_coef(model, state)
+        k, sums, left_out = umls_kernel_p2g(model.background, state.x, state.mass, state.v, coef, model.n_nodes,
+                                            guess=state.cell)
+        if sums is not None:
+            if left_out.numel():
+                sums += _p2g_sums(k.select(left_out), state.mass[left_out], state.v[left_out], coef[left_out],
+                                  None, model.n_nodes)
+            return k, sums
+        return k, p2g(model, state, k)
+    k = compute_kernel(model, state.x, state.cell)
+    return k, p2g(model, state, k)
 
 
 def p2g_plain(model: Model, state: State, k: KernelResult) -> torch.Tensor:

@@ -35,6 +35,102 @@ static inline void inverse(int d, const double q[3][3], double out[3][3]) {
         for (int b = 0; b < 3; b++) out[a][b] = adj[a][b] / det;
 }
 
+/* The kernel of particle p (see bsms_umls_weights); r, s: scratch of K doubles per axis / one.
+ * Writes p's slots of index, weight and grad; returns the number of slots used (0: no kernel)
+ * and sets *neg when an MLS weight is negative. */
+static inline int64_t kernel_one(int64_t p, int64_t P, int64_t K, int64_t d, int64_t use_eta, double inv_h,
+                                 const double *restrict x, const int64_t *restrict cell,
+                                 const int8_t *restrict status, const double *restrict bary,
+                                 const int64_t *restrict ring, const uint8_t *restrict adjacency,
+                                 const double *restrict nodes, int64_t *restrict index, double *restrict weight,
+                                 double *restrict grad, double (*restrict r)[K], double *restrict s, uint8_t *neg) {
+    const int64_t PK = P * K;
+    if (p + AHEAD < P && status[p + AHEAD] == 0) {  /* cells are scattered in memory: fetch early */
+        const int64_t next = cell[p + AHEAD];
+        for (int64_t b = 0; b < K * 8; b += 64) __builtin_prefetch((const char *)(ring + next * K) + b);
+        for (int64_t b = 0; b < (d + 1) * K; b += 64)
+            __builtin_prefetch((const char *)(adjacency + next * (d + 1) * K) + b);
+    }
+    const int64_t c = status[p] == 0 ? cell[p] : -1;
+    int64_t used = 0;  /* rings are left-packed: the first -1 ends the ring */
+    if (c >= 0)
+        while (used < K && ring[c * K + used] >= 0) used++;
+    const int64_t *ring_c = ring + (c >= 0 ? c : 0) * K;
+    const uint8_t *adj_c = adjacency + (c >= 0 ? c : 0) * (d + 1) * K;
+    const double *xp = x + p * d, *bp = bary + p * (d + 1);
+    int64_t *ip = index + p * K;
+    double *wp = weight + p * K;
+    for (int64_t k = 0; k < used; k++) ip[k] = ring_c[k];
+    for (int64_t k = used; k < K; k++) ip[k] = -1;
+    for (int a = 0; a < d; a++)
+        for (int64_t k = 0; k < used; k++) r[a][k] = nodes[ring_c[k] * d + a] - xp[a];
+    double total = 0.0;
+#pragma omp simd reduction(+:total)
+    for (int64_t k = 0; k < used; k++) {  /* d_i = N(|r| / h) eta_i (UMLS eq. 32) */
+        double q2 = r[0][k] * r[0][k];
+        for (int a = 1; a < d; a++) q2 += r[a][k] * r[a][k];
+        const double q = sqrt(q2) * inv_h, t = 1.5 - q;
+        double w = q < 0.5 ? 0.75 - q * q : (q < 1.5 ? 0.5 * t * t : 0.0);
+        if (use_eta) {
+            double eta = 0.0;
+            for (int n = 0; n <= d; n++) eta += bp[n] * (double)adj_c[n * K + k];
+            w *= eta;
+        }
+        s[k] = w;
+        total += w;
+    }
+    *neg = 0;
+    if (!(total > 0.0)) {  /* lost particle: zero kernel */
+        for (int64_t k = 0; k < K; k++) wp[k] = 0.0;
+        for (int a = 0; a < d; a++)
+            for (int64_t k = 0; k < K; k++) grad[a * PK + p * K + k] = 0.0;
+        return 0;
+    }
+    const double inv_total = 1.0 / total;
+    double m0 = 0.0, m1 = 0.0, m2 = 0.0;  /* mean offset (UMLS eqs. 22-29, block form) */
+#pragma omp simd reduction(+:m0, m1, m2)
+    for (int64_t k = 0; k < used; k++) {
+        s[k] *= inv_total;  /* d_i / S */
+        m0 += s[k] * r[0][k];
+        if (d > 1) m1 += s[k] * r[1][k];
+        if (d > 2) m2 += s[k] * r[2][k];
+    }
+    const double m[3] = {m0, m1, m2};
+    double q00 = 0.0, q01 = 0.0, q02 = 0.0, q11 = 0.0, q12 = 0.0, q22 = 0.0;  /* covariance Q */
+#pragma omp simd reduction(+:q00, q01, q02, q11, q12, q22)
+    for (int64_t k = 0; k < used; k++) {
+        const double a0 = r[0][k] - m0, a1 = d > 1 ? r[1][k] - m1 : 0.0, a2 = d > 2 ? r[2][k] - m2 : 0.0;
+        r[0][k] = a0; r[1][k] = a1; r[2][k] = a2;
+        q00 += s[k] * a0 * a0; q01 += s[k] * a0 * a1; q02 += s[k] * a0 * a2;
+        q11 += s[k] * a1 * a1; q12 += s[k] * a1 * a2; q22 += s[k] * a2 * a2;
+    }
+    const double q[3][3] = {{q00, q01, q02}, {q01, q11, q12}, {q02, q12, q22}};
+    double qi[3][3];
+    inverse((int)d, q, qi);
+    uint8_t negative = 0;
+    double *g0 = grad + p * K, *g1 = grad + PK + p * K, *g2 = grad + 2 * PK + p * K;
+    for (int64_t k = 0; k < used; k++) {  /* grad w_i = d_i/S Q^-1 (r_i - m), w_i = d_i/S - m . grad w_i */
+        double w = s[k];
+        double ga[3] = {0.0, 0.0, 0.0};
+        for (int a = 0; a < d; a++) {
+            double g = 0.0;
+            for (int b = 0; b < d; b++) g += qi[a][b] * r[b][k];
+            ga[a] = g * s[k];
+            w -= ga[a] * m[a];
+        }
+        g0[k] = ga[0];
+        if (d > 1) g1[k] = ga[1];
+        if (d > 2) g2[k] = ga[2];
+        wp[k] = w;
+        negative |= w < 0.0;
+    }
+    for (int64_t k = used; k < K; k++) wp[k] = 0.0;
+    for (int a = 0; a < d; a++)
+        for (int64_t k = used; k < K; k++) grad[a * PK + p * K + k] = 0.0;
+    *neg = negative;
+    return used;
+}
+
 /* Kernel: x (P, d); cell (P); status (P) int8, 0 = inside; bary (P, d+1); ring (C, K), left-packed;
  * adjacency (C, d+1, K) uint8; nodes (N, d) -> index (P, K), weight (P, K), grad (d, P, K),
  * negative (P) uint8: the particles with a negative MLS weight. The offsets x_i - x_p are not
@@ -46,96 +142,13 @@ int bsms_umls_weights(int64_t P, int64_t K, int64_t d, int64_t use_eta, double i
                       int64_t *restrict index, double *restrict weight, double *restrict grad,
                       uint8_t *restrict negative, int64_t threads) {
     if (d < 1 || d > 3) return 1;
-    const int64_t PK = P * K;
 #pragma omp parallel num_threads(threads)
     {
         double r[3][K], s[K];  /* this particle's offsets x_i - x_p and sample weights d_i */
 #pragma omp for schedule(static)
-        for (int64_t p = 0; p < P; p++) {
-            if (p + AHEAD < P && status[p + AHEAD] == 0) {  /* cells are scattered in memory: fetch early */
-                const int64_t next = cell[p + AHEAD];
-                for (int64_t b = 0; b < K * 8; b += 64) __builtin_prefetch((const char *)(ring + next * K) + b);
-                for (int64_t b = 0; b < (d + 1) * K; b += 64)
-                    __builtin_prefetch((const char *)(adjacency + next * (d + 1) * K) + b);
-            }
-            const int64_t c = status[p] == 0 ? cell[p] : -1;
-            int64_t used = 0;  /* rings are left-packed: the first -1 ends the ring */
-            if (c >= 0)
-                while (used < K && ring[c * K + used] >= 0) used++;
-            const int64_t *ring_c = ring + (c >= 0 ? c : 0) * K;
-            const uint8_t *adj_c = adjacency + (c >= 0 ? c : 0) * (d + 1) * K;
-            const double *xp = x + p * d, *bp = bary + p * (d + 1);
-            int64_t *ip = index + p * K;
-            double *wp = weight + p * K;
-            for (int64_t k = 0; k < used; k++) ip[k] = ring_c[k];
-            for (int64_t k = used; k < K; k++) ip[k] = -1;
-            for (int a = 0; a < d; a++)
-                for (int64_t k = 0; k < used; k++) r[a][k] = nodes[ring_c[k] * d + a] - xp[a];
-            double total = 0.0;
-#pragma omp simd reduction(+:total)
-            for (int64_t k = 0; k < used; k++) {  /* d_i = N(|r| / h) eta_i (UMLS eq. 32) */
-                double q2 = r[0][k] * r[0][k];
-                for (int a = 1; a < d; a++) q2 += r[a][k] * r[a][k];
-                const double q = sqrt(q2) * inv_h, t = 1.5 - q;
-                double w = q < 0.5 ? 0.75 - q * q : (q < 1.5 ? 0.5 * t * t : 0.0);
-                if (use_eta) {
-                    double eta = 0.0;
-                    for (int n = 0; n <= d; n++) eta += bp[n] * (double)adj_c[n * K + k];
-                    w *= eta;
-                }
-                s[k] = w;
-                total += w;
-            }
-            if (!(total > 0.0)) {  /* lost particle: zero kernel */
-                for (int64_t k = 0; k < K; k++) wp[k] = 0.0;
-                for (int a = 0; a < d; a++)
-                    for (int64_t k = 0; k < K; k++) grad[a * PK + p * K + k] = 0.0;
-                negative[p] = 0;
-                continue;
-            }
-            const double inv_total = 1.0 / total;
-            double m0 = 0.0, m1 = 0.0, m2 = 0.0;  /* mean offset (UMLS eqs. 22-29, block form) */
-#pragma omp simd reduction(+:m0, m1, m2)
-            for (int64_t k = 0; k < used; k++) {
-                s[k] *= inv_total;  /* d_i / S */
-                m0 += s[k] * r[0][k];
-                if (d > 1) m1 += s[k] * r[1][k];
-                if (d > 2) m2 += s[k] * r[2][k];
-            }
-            const double m[3] = {m0, m1, m2};
-            double q00 = 0.0, q01 = 0.0, q02 = 0.0, q11 = 0.0, q12 = 0.0, q22 = 0.0;  /* covariance Q */
-#pragma omp simd reduction(+:q00, q01, q02, q11, q12, q22)
-            for (int64_t k = 0; k < used; k++) {
-                const double a0 = r[0][k] - m0, a1 = d > 1 ? r[1][k] - m1 : 0.0, a2 = d > 2 ? r[2][k] - m2 : 0.0;
-                r[0][k] = a0; r[1][k] = a1; r[2][k] = a2;
-                q00 += s[k] * a0 * a0; q01 += s[k] * a0 * a1; q02 += s[k] * a0 * a2;
-                q11 += s[k] * a1 * a1; q12 += s[k] * a1 * a2; q22 += s[k] * a2 * a2;
-            }
-            const double q[3][3] = {{q00, q01, q02}, {q01, q11, q12}, {q02, q12, q22}};
-            double qi[3][3];
-            inverse((int)d, q, qi);
-            uint8_t neg = 0;
-            double *g0 = grad + p * K, *g1 = grad + PK + p * K, *g2 = grad + 2 * PK + p * K;
-            for (int64_t k = 0; k < used; k++) {  /* grad w_i = d_i/S Q^-1 (r_i - m), w_i = d_i/S - m . grad w_i */
-                double w = s[k];
-                double ga[3] = {0.0, 0.0, 0.0};
-                for (int a = 0; a < d; a++) {
-                    double g = 0.0;
-                    for (int b = 0; b < d; b++) g += qi[a][b] * r[b][k];
-                    ga[a] = g * s[k];
-                    w -= ga[a] * m[a];
-                }
-                g0[k] = ga[0];
-                if (d > 1) g1[k] = ga[1];
-                if (d > 2) g2[k] = ga[2];
-                wp[k] = w;
-                neg |= w < 0.0;
-            }
-            for (int64_t k = used; k < K; k++) wp[k] = 0.0;
-            for (int a = 0; a < d; a++)
-                for (int64_t k = used; k < K; k++) grad[a * PK + p * K + k] = 0.0;
-            negative[p] = neg;
-        }
+        for (int64_t p = 0; p < P; p++)
+            kernel_one(p, P, K, d, use_eta, inv_h, x, cell, status, bary, ring, adjacency, nodes, index,
+                       weight, grad, r, s, negative + p);
     }
     return 0;
 }
@@ -183,6 +196,59 @@ int bsms_p2g(int64_t P, int64_t K, int64_t d, int64_t N,
                             f += cp[a * d + b] * g[b];
                         }
                         node[1 + a] += wm * vel;
+                        node[1 + d + a] += f;
+                    }
+                }
+            }
+        }
+#pragma omp for schedule(static)
+        for (int64_t i = 0; i < N; i++)
+            for (int64_t j = 0; j < rows; j++) {
+                double total = 0.0;
+                for (int64_t block = 0; block < BLOCKS; block++) total += scratch[(block * N + i) * rows + j];
+                sums[j * N + i] = total;
+            }
+    }
+    return 0;
+}
+
+/* The kernel and the FLIP/PIC P2G in one pass (bsms_umls_weights, then bsms_p2g with affine NULL):
+ * each particle's slots are summed into the nodes while they are still in cache, which saves
+ * P2G's pass over the slot arrays. Particles with a negative MLS weight (negative[p] = 1) are
+ * left out of the sums: their kernel is replaced afterwards and the caller adds them. Same
+ * fixed particle blocks and block-order reduction as bsms_p2g (thread-count invariant). */
+int bsms_umls_p2g(int64_t P, int64_t K, int64_t d, int64_t use_eta, double inv_h,
+                  const double *restrict x, const int64_t *restrict cell, const int8_t *restrict status,
+                  const double *restrict bary, const int64_t *restrict ring,
+                  const uint8_t *restrict adjacency, const double *restrict nodes,
+                  int64_t *restrict index, double *restrict weight, double *restrict grad,
+                  uint8_t *restrict negative, int64_t N, const double *restrict mass, const double *restrict v,
+                  const double *restrict coef, double *restrict sums, double *restrict scratch, int64_t threads) {
+    if (d < 1 || d > 3) return 1;
+    const int64_t PK = P * K, rows = 1 + 2 * d;
+#pragma omp parallel num_threads(threads)
+    {
+        double r[3][K], s[K];
+#pragma omp for schedule(static)
+        for (int64_t block = 0; block < BLOCKS; block++) {
+            double *out = scratch + block * rows * N;
+            for (int64_t j = 0; j < rows * N; j++) out[j] = 0.0;
+            for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++) {
+                const int64_t used = kernel_one(p, P, K, d, use_eta, inv_h, x, cell, status, bary, ring,
+                                                adjacency, nodes, index, weight, grad, r, s, negative + p);
+                if (negative[p]) continue;
+                const double *vp = v + p * d, *cp = coef + p * d * d;
+                for (int64_t k = 0; k < used; k++) {
+                    const int64_t sl = p * K + k;
+                    const double wm = weight[sl] * mass[p];
+                    double g[3];
+                    for (int b = 0; b < d; b++) g[b] = grad[b * PK + sl];
+                    double *node = out + index[sl] * rows;
+                    node[0] += wm;
+                    for (int a = 0; a < d; a++) {
+                        double f = 0.0;
+                        for (int b = 0; b < d; b++) f += cp[a * d + b] * g[b];
+                        node[1 + a] += wm * vp[a];
                         node[1 + d + a] += f;
                     }
                 }
