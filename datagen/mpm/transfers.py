@@ -72,12 +72,12 @@ def kernel_and_p2g(model: Model, state: State) -> tuple[KernelResult, torch.Tens
         coef = _force_coef(model, state)
         k, sums, left_out = umls_kernel_p2g(model.background, state.x, state.mass, state.v, coef, model.n_nodes,
                                             guess=state.cell)
-        if sums is not None:
-            if left_out.numel():
-                sums += _p2g_sums(k.select(left_out), state.mass[left_out], state.v[left_out], coef[left_out],
-                                  None, model.n_nodes)
-            return k, sums
-        return k, p2g(model, state, k)
+        if sums is None:  # not compiled here (another device or dtype)
+            return k, _p2g_sums(k, state.mass, state.v, coef, None, model.n_nodes)
+        if left_out.numel():
+            sums += _p2g_sums(k.select(left_out), state.mass[left_out], state.v[left_out], coef[left_out],
+                              None, model.n_nodes)
+        return k, sums
     k = compute_kernel(model, state.x, state.cell)
     return k, p2g(model, state, k)
 
