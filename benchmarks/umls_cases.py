@@ -18,8 +18,8 @@ centre and the total energy over time). The last line is exactly
 
     python benchmarks/umls_cases.py [--quick] [--out runs/umls_cases]
 
-Defaults: each scene's documented defaults (slope 4 s, ~10 min per solver on one thread;
-expansion 0.4 s). ``--quick``: a 1 m mesh with 0.5 m particles for the slope and a 0.1 m
+Defaults: each scene's documented defaults (slope 4 s, 1.4 min UMLS and 0.9 min B-spline on one
+thread; expansion 0.4 s, 2 min). ``--quick``: a 1 m mesh with 0.5 m particles for the slope and a 0.1 m
 container mesh for the expansion (a minute or two in all).
 """
 
