@@ -1,26 +1,30 @@
 """The UMLS paper's two cases, run and drawn: the sensitive-clay ``slope`` and the ``expansion``.
 
-The slope runs twice, on the unstructured mesh (UMLS) and on the structured B-spline grid of the
-same spacing (``solver.kernel: bspline``), both APIC with F-bar as the scene sets; the expansion
-runs once (UMLS on the conforming sphere). Every run is kept in ``--out`` as a trajectory file
-(a second call reuses it: delete it to re-run) with its particles as an XDMF time series for
-ParaView (velocity, displacement, and the slope's ``plastic_strain`` and ``mean_stress``).
+The slope runs on the unstructured mesh (UMLS) and on the structured B-spline grid of the same
+spacing (``solver.kernel: bspline``), both APIC with F-bar as the scene sets, at two resolutions:
+the scene's defaults (0.5 m mesh, 0.25 m particles) and the papers' (0.2 m mesh, 0.1 m
+particles; 25 m of floor in front of the toe so that neither run reaches the far wall). The
+expansion runs once (UMLS on the conforming sphere). Every run is kept in ``--out`` as a
+trajectory file (a second call reuses it: delete it to re-run) with its particles as an XDMF time
+series for ParaView (velocity, displacement, and the slope's ``plastic_strain`` and ``mean_stress``).
 
 Pictures (``--images``, default docs/images, with ``--quick`` the run folder):
-``umls_slope_runout.png`` (run-out over time, both solvers), ``umls_slope_plastic_strain.png``
-(the last frame coloured by the equivalent plastic strain, both solvers) and
+``umls_slope_runout.png`` (run-out over time, both solvers and resolutions),
+``umls_slope_plastic_strain.png`` (the papers' resolution at 1 s, when the shear band has
+formed, and at the end, coloured by the equivalent plastic strain, both solvers) and
 ``umls_expansion.png`` (the wall's contact force, the farthest particle's distance from the
 centre and the total energy over time). The last line is exactly
 
     umls cases: slope run-out UMLS U m, B-spline B m (ratio R), expansion distance max D m of 0.5 m, energy rises N
 
-(R = U / B at the last frame; N: frames whose total energy is above the previous frame's).
+(U, B, R = U / B: the papers' resolution at the last frame; N: frames whose total energy is above
+the previous frame's).
 
     python benchmarks/umls_cases.py [--quick] [--out runs/umls_cases]
 
-Defaults: each scene's documented defaults (slope 4 s, 1.4 min UMLS and 0.9 min B-spline on one
-thread; expansion 0.4 s, 2 min). ``--quick``: a 1 m mesh with 0.5 m particles for the slope and a 0.1 m
-container mesh for the expansion (a minute or two in all).
+Times on one thread: the default-resolution slope 1.4 min UMLS and 0.9 min B-spline, the papers'
+resolution ~13 and ~10 min, the expansion 2 min. ``--quick``: a 1 m mesh with 0.5 m particles for
+the slope (both "resolutions") and a 0.1 m container mesh for the expansion (a minute or two).
 """
 
 from __future__ import annotations
@@ -45,7 +49,11 @@ from datagen.dataset import load, save  # noqa: E402
 from datagen.export import write_particles  # noqa: E402
 
 QUICK = {"slope": {"mesh_size": 1.0, "particle_spacing": 0.5}, "expansion": {"mesh_size": 0.1, "body_size": 0.1}}
+PAPER_SLOPE = {"mesh_size": 0.2, "particle_spacing": 0.1, "room": 25.0}  # UMLS §3.5's resolution
+BAND_TIME = 1.0  # s: the papers' resolution has formed its shear band
 SOLVERS = {"umls": {}, "bspline": {"kernel": "bspline"}}
+RESOLUTIONS = (("default", "defaults (0.5 m mesh)", {}), ("paper", "papers' resolution (0.2 m mesh)", PAPER_SLOPE))
+QUICK_RESOLUTIONS = (("quick", "1 m mesh", QUICK["slope"]),)
 
 
 def run(name: str, config: dict, out: Path) -> datagen.Trajectory:
@@ -65,11 +73,13 @@ def run(name: str, config: dict, out: Path) -> datagen.Trajectory:
 
 
 def draw_runout(slopes: dict, path: Path) -> None:
-    fig, ax = plt.subplots(figsize=(5.5, 3.6))
-    for label, trajectory in slopes.items():
-        ax.plot(trajectory.times, trajectory.diagnostics["runout"], label=label)
+    fig, ax = plt.subplots(figsize=(6, 3.8))
+    finest = list(slopes)[-1][0]
+    for (resolution, label), trajectory in slopes.items():
+        ax.plot(trajectory.times, trajectory.diagnostics["runout"], label=f"{label}, {resolution}",
+                ls="-" if "UMLS" in label else "--", lw=2 if resolution == finest else 1)
     ax.set(xlabel="time (s)", ylabel="run-out (m)", title="Sensitive-clay slope: run-out of the toe")
-    ax.legend()
+    ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -77,16 +87,22 @@ def draw_runout(slopes: dict, path: Path) -> None:
 
 
 def draw_plastic_strain(slopes: dict, path: Path) -> None:
-    fig, axes = plt.subplots(len(slopes), 1, figsize=(8, 2.6 * len(slopes)), sharex=True, squeeze=False)
-    top = max(float(t.diagnostics["plastic_strain"][-1].max()) for t in slopes.values())
-    for ax, (label, trajectory) in zip(axes[:, 0], slopes.items(), strict=True):
-        x = trajectory.positions[-1]
-        shown = ax.scatter(x[:, 0], x[:, 1], c=trajectory.diagnostics["plastic_strain"][-1], s=6, cmap="magma_r",
-                           vmin=0.0, vmax=top)
-        ax.set_aspect("equal")
-        ax.set(ylabel="y (m)", title=f"{label}, t = {trajectory.times[-1]:.1f} s: equivalent plastic strain")
-        fig.colorbar(shown, ax=ax, shrink=0.8)
-    axes[-1, 0].set_xlabel("x (m)")
+    """The finest pair (the last run) at BAND_TIME and at the end, coloured by the equivalent plastic strain."""
+    finest = list(slopes)[-1][0]
+    shown_runs = {label: t for (resolution, label), t in slopes.items() if resolution == finest}
+    fig, axes = plt.subplots(len(shown_runs), 2, figsize=(15, 2.4 * len(shown_runs)), squeeze=False,
+                             gridspec_kw={"width_ratios": [1, 2.2]})
+    for row, (label, trajectory) in zip(axes, shown_runs.items(), strict=True):
+        band = int(np.argmin(np.abs(trajectory.times - BAND_TIME)))
+        for ax, k, top in ((row[0], band, 1.0), (row[1], -1, 5.0)):
+            x = trajectory.positions[k]
+            shown = ax.scatter(x[:, 0], x[:, 1], c=trajectory.diagnostics["plastic_strain"][k], s=1.5,
+                               cmap="magma_r", vmin=0.0, vmax=top)
+            ax.set_aspect("equal")
+            ax.set(ylabel="y (m)", title=f"{label}, t = {trajectory.times[k]:.1f} s: eq. plastic strain")
+            fig.colorbar(shown, ax=ax, shrink=0.8)
+    for ax in axes[-1]:
+        ax.set_xlabel("x (m)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -127,22 +143,30 @@ def main(argv=None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     args.images = args.images or (out if args.quick else ROOT / "docs" / "images")
     args.images.mkdir(parents=True, exist_ok=True)
-    params = QUICK if args.quick else {"slope": {}, "expansion": {}}
-    slopes = {label: run(f"slope_{name}", {"scene": "slope", "params": params["slope"],
-                                           "solver": {**solver, "threads": args.threads}}, out)
-              for name, solver, label in (("umls", SOLVERS["umls"], "UMLS (unstructured mesh)"),
-                                          ("bspline", SOLVERS["bspline"], "B-spline grid"))}
-    expansion = run("expansion", {"scene": "expansion", "params": params["expansion"],
+    expansion_params = QUICK["expansion"] if args.quick else {}
+    resolutions = QUICK_RESOLUTIONS if args.quick else RESOLUTIONS
+    slopes = {}
+    for key, resolution, params in resolutions:
+        for name, solver, label in (("umls", SOLVERS["umls"], "UMLS (unstructured mesh)"),
+                                    ("bspline", SOLVERS["bspline"], "B-spline grid")):
+            slopes[resolution, label] = run(f"slope_{name}_{key}", {"scene": "slope", "params": params,
+                                                                    "solver": {**solver, "threads": args.threads}}, out)
+    expansion = run("expansion", {"scene": "expansion", "params": expansion_params,
                                   "solver": {"threads": args.threads}}, out)
     radius = float(expansion.config["params"]["radius"])
     draw_runout(slopes, args.images / "umls_slope_runout.png")
     draw_plastic_strain(slopes, args.images / "umls_slope_plastic_strain.png")
     draw_expansion(expansion, radius, args.images / "umls_expansion.png")
-    umls, grid = (t.diagnostics["runout"] for t in slopes.values())
-    times = next(iter(slopes.values())).times
-    print("time (s)  run-out UMLS (m)  run-out B-spline (m)")
-    for k in range(0, len(times), max(1, len(times) // 8)):
-        print(f"{times[k]:8.2f}  {umls[k]:16.3f}  {grid[k]:20.3f}")
+    for _, resolution, _ in resolutions:  # the last (finest) one is reported on the last line
+        umls, grid = (slopes[resolution, label].diagnostics["runout"]
+                      for label in ("UMLS (unstructured mesh)", "B-spline grid"))
+        times = slopes[resolution, "UMLS (unstructured mesh)"].times
+        print(f"{resolution}: time (s), run-out UMLS (m), run-out B-spline (m)")
+        for k in range(0, len(times), max(1, len(times) // 8)):
+            print(f"{times[k]:8.2f}  {umls[k]:16.3f}  {grid[k]:20.3f}")
+        print("  frames whose total energy rose: " + ", ".join(
+            f"{label} {int(np.sum(np.diff(total_energy(t.diagnostics)) > 0))}"
+            for (r, label), t in slopes.items() if r == resolution))
     rises = int(np.sum(np.diff(total_energy(expansion.diagnostics)) > 0))
     print(f"pictures in {args.images}: umls_slope_runout.png, umls_slope_plastic_strain.png, umls_expansion.png; "
           f"particles (ParaView) in {out}")

@@ -1,7 +1,8 @@
 """The `slope` scene (thesis §2.3.4): sensitive clay (Hencky-J2 with softening) failing under gravity.
 
-The default-resolution comparison with the B-spline grid solver (run-out over 4 s, ~10 minutes each) is
-too long for the test suite; its numbers are in the module docstring of datagen.scenes.slope.
+The comparisons with the B-spline grid solver (run-out over 4 s at the defaults and at the papers'
+resolution, 2.5 and ~23 minutes) are too long for the test suite: `benchmarks/umls_cases.py` runs them
+and the module docstring of datagen.scenes.slope has their numbers.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import datagen
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 COARSE = {"mesh_size": 1.0, "particle_spacing": 0.5}
-RHO_G_H = 2150.0 * 9.81 * 7.0
 
 
 def test_slope_starts_to_fail_and_reports_its_diagnostics():
@@ -24,12 +24,15 @@ def test_slope_starts_to_fail_and_reports_its_diagnostics():
     assert d["runout"].shape == (6,) and d["plastic_strain"].shape == (6, n) and d["mean_stress"].shape == (6, n)
     assert d["runout"][0] == 0.0 and d["plastic_strain_max"][0] == 0.0
     assert np.all(np.diff(d["plastic_strain_max"]) >= 0)  # eps_q^p only grows
-    assert d["plastic_strain_max"][-1] > 0.01  # measured 0.020 at 0.5 s
-    assert d["runout"][-1] > 0.005  # measured 0.0098 m: the toe has begun to move
-    # Mean normal stress: compression at the foot of the back wall, a little over the overburden rho g H there
-    # (the face's thrust; measured -1.53 rho g H at 0.1 s after the sudden gravity load, -1.42 at 0.5 s).
+    assert d["plastic_strain_max"][-1] > 0.01  # measured 0.028 at 0.5 s
+    assert d["runout"][-1] > 0.005  # measured 0.013 m: the toe has begun to move
+    # Mean normal stress at the foot of the back wall: nearly incompressible clay under gravity is close to
+    # isotropic (K0 = nu / (1 - nu) ~ 1), so about the overburden rho g depth there, a little less while the
+    # slope slumps (measured 0.97 of it at 0.1 s after the sudden gravity load, 0.84-0.88 at 0.2-0.5 s; the
+    # earlier F-bar of increments dJ gave 1.5 and 1.4).
     foot = int(np.argmin(np.linalg.norm(traj.positions[0], axis=1)))
-    assert -2.0 * RHO_G_H < d["mean_stress"][-1, foot] < -1.0 * RHO_G_H
+    overburden = 2150.0 * 9.81 * (7.0 - traj.positions[0, foot, 1])
+    assert -1.0 * overburden < d["mean_stress"][-1, foot] < -0.8 * overburden
     assert np.all(d["mean_stress"][0] == 0.0)
 
 
