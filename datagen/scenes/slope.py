@@ -11,22 +11,27 @@ of cell-centred particles (``particle_spacing``) cut by the face; gravity comes 
 soil starts stress free). The background is the box [0, toe + room] x [0, H + 1] (x [0, width] in
 3D), meshed at ``mesh_size`` (the B-spline solver's grid spacing by default). Walls: the floor is
 fixed (sticky), the back x = 0 (and in 3D the sides z = 0, z = width) are rollers (slip), the rest
-separating. Measured at the defaults (4 s): the whole failed mass flows (residual strength 2.45 kPa);
-run-out UMLS 7.86 m (still moving), B-spline grid 12.48 m (reaching the far wall at ~3.5 s): the grid
-solver fails earlier and faster (run-out 0.25 vs 0.65 m at 1.5 s, 0.78 vs 1.78 m at 2 s). NOT yet
-within 10% of each other.
+separating. Measured (4 s, APIC with F-bar; benchmarks/umls_cases.py): at the defaults run-out
+UMLS 8.12 m, B-spline grid 12.18 m (ratio 0.67; the grid nears the far wall); at the papers'
+resolution (``mesh_size: 0.2, particle_spacing: 0.1, room: 25``) 18.07 m and 20.67 m (ratio 0.87;
+0.82 at 2 s, 0.85 at 3 s): the gap narrows with resolution but is not yet within 10%. At the
+papers' resolution the softening localises into a curved shear band from the toe to the back by
+1 s in both solvers; at the defaults (28 particles over the height) the plastic strain spreads
+over the whole sliding mass. Total energy falls every frame in all four runs.
 
 ``dim`` 2 (the default) is plane strain: with rollers on both lateral sides the 3D slope of
-uniform cross-section has the same solution unless it breaks its symmetry, and the 3D run at
-this resolution takes hours on two cores (the CFL step of nu = 0.499 is ~1e-4 s). ``dim: 3`` runs
-the 3D slope; the paper's resolution is ``mesh_size: 0.2, particle_spacing: 0.1``.
+uniform cross-section has the same solution unless it breaks its symmetry. ``dim: 3`` runs the
+3D slope; at the papers' resolution (``mesh_size: 0.2, particle_spacing: 0.1``) and a 2 m width
+that is ~98k particles over ~84k steps of 4 s (the CFL step of nu = 0.499 is ~5e-5 s there), about
+two hours at the 3D step's 1.2 M particle-steps/s on two cores (estimated, not run).
 
 The solver defaults to APIC with F-bar (``solver.fbar``, :mod:`~datagen.mpm.inelastic`) against
-volumetric locking. The papers used F-bar with FLIP; with FLIP the B-spline grid reference blows
-up at the default resolution (README, "Plasticity and the papers' 3D cases"), so both run APIC
-here. Per-frame diagnostics: ``runout`` (m, the advance of the foremost particle beyond the
-initial toe), ``plastic_strain_max``, and per tracked particle
-``plastic_strain`` (eps_q^p) and ``mean_stress`` (tr sigma / 3, Pa; negative in compression).
+volumetric locking. The papers used F-bar with FLIP; with FLIP both solvers are noisy at the
+papers' resolution (the grid's run-out reaches 25 m by 3.8 s with plastic strains of 69; a UMLS
+particle leaves the domain at 3.5 s), so both run APIC here. Per-frame diagnostics: ``runout``
+(m, the advance of the foremost particle beyond the initial toe), ``plastic_strain_max``, and per
+tracked particle ``plastic_strain`` (eps_q^p) and ``mean_stress`` (tr sigma / 3, Pa; negative in
+compression).
 """
 
 from __future__ import annotations
