@@ -170,7 +170,7 @@ def main(argv=None) -> None:
     rises = int(np.sum(np.diff(total_energy(expansion.diagnostics)) > 0))
     print(f"pictures in {args.images}: umls_slope_runout.png, umls_slope_plastic_strain.png, umls_expansion.png; "
           f"particles (ParaView) in {out}")
-    print(f"umls cases: slope run-out UMLS {umls[-1]:.3g} m, B-spline {grid[-1]:.3g} m "
+    print(f"umls cases: slope run-out UMLS {umls[-1]:#.3g} m, B-spline {grid[-1]:#.3g} m "
           f"(ratio {umls[-1] / grid[-1]:.3g}), "
           f"expansion distance max {expansion.diagnostics['distance_max'].max():.3g} m of {radius:g} m, "
           f"energy rises {rises}")

@@ -24,15 +24,15 @@ def test_slope_starts_to_fail_and_reports_its_diagnostics():
     assert d["runout"].shape == (6,) and d["plastic_strain"].shape == (6, n) and d["mean_stress"].shape == (6, n)
     assert d["runout"][0] == 0.0 and d["plastic_strain_max"][0] == 0.0
     assert np.all(np.diff(d["plastic_strain_max"]) >= 0)  # eps_q^p only grows
-    assert d["plastic_strain_max"][-1] > 0.01  # measured 0.028 at 0.5 s
-    assert d["runout"][-1] > 0.005  # measured 0.013 m: the toe has begun to move
+    assert d["plastic_strain_max"][-1] > 0.01  # measured 0.044 at 0.5 s
+    assert d["runout"][-1] > 0.005  # measured 0.020 m: the toe has begun to move
     # Mean normal stress at the foot of the back wall: nearly incompressible clay under gravity is close to
-    # isotropic (K0 = nu / (1 - nu) ~ 1), so about the overburden rho g depth there, a little less while the
-    # slope slumps (measured 0.97 of it at 0.1 s after the sudden gravity load, 0.84-0.88 at 0.2-0.5 s; the
-    # earlier F-bar of increments dJ gave 1.5 and 1.4).
+    # isotropic (K0 = nu / (1 - nu) ~ 1), so about the overburden rho g depth there (measured 1.07 of it at
+    # 0.1 s after the sudden gravity load, 1.01-1.06 at 0.2-0.5 s; with the floor's ghosts folded 0.97 and
+    # 0.84-0.88, and with the earlier F-bar of increments dJ 1.5 and 1.4).
     foot = int(np.argmin(np.linalg.norm(traj.positions[0], axis=1)))
     overburden = 2150.0 * 9.81 * (7.0 - traj.positions[0, foot, 1])
-    assert -1.0 * overburden < d["mean_stress"][-1, foot] < -0.8 * overburden
+    assert -1.15 * overburden < d["mean_stress"][-1, foot] < -0.95 * overburden
     assert np.all(d["mean_stress"][0] == 0.0)
 
 
