@@ -22,9 +22,10 @@ the previous frame's).
 
     python benchmarks/umls_cases.py [--quick] [--out runs/umls_cases]
 
-Times on one thread: the default-resolution slope 1.4 min UMLS and 0.9 min B-spline, the papers'
-resolution ~13 and ~10 min, the expansion 2 min. ``--quick``: a 1 m mesh with 0.5 m particles for
-the slope (both "resolutions") and a 0.1 m container mesh for the expansion (a minute or two).
+Times on one thread: the default-resolution slope about 1.5 min UMLS and 1 min B-spline, the
+papers' resolution ~13 and ~10 min, the expansion 2 min. ``--quick``: the slope at one resolution
+only, a 1 m mesh with 0.5 m particles, and a 0.1 m container mesh for the expansion (a minute or
+two).
 """
 
 from __future__ import annotations

@@ -359,9 +359,10 @@ def _umls_kernel(mesh, x, eta: bool, nonnegative: bool, location: Location | Non
     sums = left_out = None
     if compiled is not None:  # offsets are computed on first use (APIC)
         (index, weight, grad, negative), r = compiled[:4], None
+        negative_rows = negative.nonzero().squeeze(1)
         if p2g is not None:
-            sums, left_out = compiled[4], negative.nonzero().squeeze(1)
-        rows = (left_out if left_out is not None else negative.nonzero().squeeze(1)) if nonnegative else None
+            sums, left_out = compiled[4], negative_rows
+        rows = negative_rows if nonnegative else None
     else:
         index = _gather_rows(tables.ring, cell)
         index = index.masked_fill_((location.status != LocateStatus.INSIDE)[:, None], -1)

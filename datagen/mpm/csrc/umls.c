@@ -162,6 +162,50 @@ int bsms_umls_weights(int64_t P, int64_t K, int64_t d, int64_t use_eta, double i
  * order: the result does not depend on the number of threads. */
 #define BLOCKS 4
 
+/* P2G of particle p's first `slots` slots into the node-major block copy `out` (N x (1+2d)). */
+static inline void p2g_particle(int64_t p, int64_t slots, int64_t K, int64_t d, int64_t PK,
+                                const int64_t *restrict index, const double *restrict weight,
+                                const double *restrict grad, const double *restrict offset,
+                                const double *restrict mass, const double *restrict v, const double *restrict coef,
+                                const double *restrict affine, double *restrict out) {
+    const int64_t rows = 1 + 2 * d;
+    const double *vp = v + p * d, *cp = coef + p * d * d, *ap = affine ? affine + p * d * d : 0;
+    for (int64_t k = 0; k < slots; k++) {
+        const int64_t i = index[p * K + k];
+        if (i < 0) continue;
+        const int64_t s = p * K + k;
+        const double wm = weight[s] * mass[p];
+        double g[3], r[3];
+        for (int b = 0; b < d; b++) {
+            g[b] = grad[b * PK + s];
+            r[b] = ap ? offset[b * PK + s] : 0.0;
+        }
+        double *node = out + i * rows;
+        node[0] += wm;
+        for (int a = 0; a < d; a++) {
+            double vel = vp[a], f = 0.0;
+            for (int b = 0; b < d; b++) {
+                if (ap) vel += ap[a * d + b] * r[b];
+                f += cp[a * d + b] * g[b];
+            }
+            node[1 + a] += wm * vel;
+            node[1 + d + a] += f;
+        }
+    }
+}
+
+/* sums (rows, N) = the BLOCKS node-major copies in scratch added in block order. Called inside a
+ * parallel region (the loop over nodes is shared among its threads). */
+static void add_blocks(int64_t N, int64_t rows, const double *restrict scratch, double *restrict sums) {
+#pragma omp for schedule(static)
+    for (int64_t i = 0; i < N; i++)
+        for (int64_t j = 0; j < rows; j++) {
+            double total = 0.0;
+            for (int64_t block = 0; block < BLOCKS; block++) total += scratch[(block * N + i) * rows + j];
+            sums[j * N + i] = total;
+        }
+}
+
 int bsms_p2g(int64_t P, int64_t K, int64_t d, int64_t N,
              const int64_t *restrict index, const double *restrict weight, const double *restrict grad,
              const double *restrict offset, const double *restrict mass, const double *restrict v,
@@ -175,39 +219,10 @@ int bsms_p2g(int64_t P, int64_t K, int64_t d, int64_t N,
         for (int64_t block = 0; block < BLOCKS; block++) {
             double *out = scratch + block * rows * N;
             for (int64_t j = 0; j < rows * N; j++) out[j] = 0.0;
-            for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++) {
-                const double *vp = v + p * d, *cp = coef + p * d * d, *ap = affine ? affine + p * d * d : 0;
-                for (int64_t k = 0; k < K; k++) {
-                    const int64_t i = index[p * K + k];
-                    if (i < 0) continue;
-                    const int64_t s = p * K + k;
-                    const double wm = weight[s] * mass[p];
-                    double g[3], r[3];
-                    for (int b = 0; b < d; b++) {
-                        g[b] = grad[b * PK + s];
-                        r[b] = ap ? offset[b * PK + s] : 0.0;
-                    }
-                    double *node = out + i * rows;
-                    node[0] += wm;
-                    for (int a = 0; a < d; a++) {
-                        double vel = vp[a], f = 0.0;
-                        for (int b = 0; b < d; b++) {
-                            if (ap) vel += ap[a * d + b] * r[b];
-                            f += cp[a * d + b] * g[b];
-                        }
-                        node[1 + a] += wm * vel;
-                        node[1 + d + a] += f;
-                    }
-                }
-            }
+            for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++)
+                p2g_particle(p, K, K, d, PK, index, weight, grad, offset, mass, v, coef, affine, out);
         }
-#pragma omp for schedule(static)
-        for (int64_t i = 0; i < N; i++)
-            for (int64_t j = 0; j < rows; j++) {
-                double total = 0.0;
-                for (int64_t block = 0; block < BLOCKS; block++) total += scratch[(block * N + i) * rows + j];
-                sums[j * N + i] = total;
-            }
+        add_blocks(N, rows, scratch, sums);
     }
     return 0;
 }
@@ -236,31 +251,11 @@ int bsms_umls_p2g(int64_t P, int64_t K, int64_t d, int64_t use_eta, double inv_h
             for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++) {
                 const int64_t used = kernel_one(p, P, K, d, use_eta, inv_h, x, cell, status, bary, ring,
                                                 adjacency, nodes, index, weight, grad, r, s, negative + p);
-                if (negative[p]) continue;
-                const double *vp = v + p * d, *cp = coef + p * d * d;
-                for (int64_t k = 0; k < used; k++) {
-                    const int64_t sl = p * K + k;
-                    const double wm = weight[sl] * mass[p];
-                    double g[3];
-                    for (int b = 0; b < d; b++) g[b] = grad[b * PK + sl];
-                    double *node = out + index[sl] * rows;
-                    node[0] += wm;
-                    for (int a = 0; a < d; a++) {
-                        double f = 0.0;
-                        for (int b = 0; b < d; b++) f += cp[a * d + b] * g[b];
-                        node[1 + a] += wm * vp[a];
-                        node[1 + d + a] += f;
-                    }
-                }
+                if (!negative[p])
+                    p2g_particle(p, used, K, d, PK, index, weight, grad, 0, mass, v, coef, 0, out);
             }
         }
-#pragma omp for schedule(static)
-        for (int64_t i = 0; i < N; i++)
-            for (int64_t j = 0; j < rows; j++) {
-                double total = 0.0;
-                for (int64_t block = 0; block < BLOCKS; block++) total += scratch[(block * N + i) * rows + j];
-                sums[j * N + i] = total;
-            }
+        add_blocks(N, rows, scratch, sums);
     }
     return 0;
 }
