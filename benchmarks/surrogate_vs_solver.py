@@ -16,14 +16,19 @@ Writes ``OUT/run/evaluation/`` (metrics.json, speed_accuracy.md/.csv/.png, error
 with ``--docs``, copies the table and chart to ``docs/surrogate_vs_solver.md`` and
 ``docs/images/surrogate_vs_solver.png`` (what the README shows). Ends with exactly::
 
-    surrogate: speedup S x, rel RMSE all E, unstable U of N, dominated by none|<settings>
+    surrogate: speedup S x, rel RMSE all E, vs at rest R, unstable U of N, dominated by none|<settings>
 
 S: the ground-truth solver's wall seconds per simulated second over the model's; E: the
 model's rollout RMSE over all steps and free nodes relative to the body size (mean over
-trajectories); U of N: unstable rollouts; the settings (names of SOLVER_SETTINGS) that are
-both at least as fast and at least as accurate, one of them strictly.
+trajectories); R: the mean over trajectories of that RMSE over the one of predicting no motion
+(``vs_rest``, :mod:`bsms.motion`: above 1 the model has learned nothing); U of N: unstable
+rollouts; the settings (names of SOLVER_SETTINGS) that are both at least as fast and at least
+as accurate, one of them strictly.
 
-    python benchmarks/surrogate_vs_solver.py [--pretrained pretrained/press2d] [--trajectories N] [--workers K]
+    python benchmarks/surrogate_vs_solver.py [--family press | --pretrained DIR] [--trajectories N] [--workers K]
+
+``--family NAME`` takes ``pretrained/<NAME>2d``; with ``--docs`` the table and chart of a family
+other than press are copied under its name (``docs/surrogate_vs_solver_<NAME>.md``).
 """
 
 from __future__ import annotations
@@ -75,12 +80,14 @@ def verdict(rows: list[dict]) -> str:
     model = next(r for r in rows if r["kind"] != "solver")
     dominated = [setting_name(label) for label in model.get("dominated_by") or []]
     return (f"surrogate: speedup {model['speedup']:.3g} x, rel RMSE all {model['rel_all']:.3g}, "
-            f"unstable {model['unstable']} of {model['trajectories']}, dominated by {', '.join(dominated) or 'none'}")
+            f"vs at rest {model['vs_rest']:.3g}, unstable {model['unstable']} of {model['trajectories']}, "
+            f"dominated by {', '.join(dominated) or 'none'}")
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pretrained", type=Path, default=ROOT / "pretrained" / "press2d")
+    parser.add_argument("--family", default=None, help="the pretrained model of this family: pretrained/<family>2d")
+    parser.add_argument("--pretrained", type=Path, default=None, help="a pretrained folder (default: press2d)")
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "surrogate_vs_solver")
     parser.add_argument("--trajectories", type=int, default=None, help="test trajectories (default: all)")
     parser.add_argument("--solver", nargs="+", default=list(SOLVER_SETTINGS), choices=list(SOLVER_SETTINGS))
@@ -89,6 +96,14 @@ def main(argv=None) -> None:
                         help="one-thread processes the learned rollouts and the solver runs share (default 2)")
     parser.add_argument("--docs", action="store_true", help="copy the table and chart into docs/")
     args = parser.parse_args(argv)
+    if args.family is not None and args.pretrained is not None:
+        parser.error("give --family or --pretrained, not both")
+    family = args.family or "press"
+    args.pretrained = args.pretrained or ROOT / "pretrained" / f"{family}2d"
+    if not (args.pretrained / "checkpoints" / "best.pt").is_file():
+        parser.error(f"no pretrained model at {args.pretrained} (checkpoints/best.pt); export one with "
+                     f"python -m bsms.pretrained RUN {args.pretrained}")
+    suffix = "" if family == "press" else f"_{family}"
     os.chdir(ROOT)
     torch.set_num_threads(1)
     run = args.out / "run"
@@ -104,8 +119,9 @@ def main(argv=None) -> None:
     print((evaluation / "speed_accuracy.md").read_text())
     if args.docs:
         (ROOT / "docs" / "images").mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(evaluation / "speed_accuracy.png", ROOT / "docs" / "images" / "surrogate_vs_solver.png")
-        shutil.copyfile(evaluation / "speed_accuracy.md", ROOT / "docs" / "surrogate_vs_solver.md")
+        chart = ROOT / "docs" / "images" / f"surrogate_vs_solver{suffix}.png"
+        shutil.copyfile(evaluation / "speed_accuracy.png", chart)
+        shutil.copyfile(evaluation / "speed_accuracy.md", ROOT / "docs" / f"surrogate_vs_solver{suffix}.md")
     print(verdict(result["rows"]))
 
 

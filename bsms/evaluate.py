@@ -23,9 +23,7 @@ from __future__ import annotations
 
 import argparse
 import copy
-import csv
 import json
-import math
 import multiprocessing
 import sys
 from concurrent.futures import ProcessPoolExecutor
@@ -41,6 +39,7 @@ from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.fields import eulerian_state, spec_of, world_positions
 from bsms.learned_rollouts import learned_rollouts
+from bsms.report import GROUND_TRUTH, columns, ground_truth_row, heading, rest, write_report, write_tables
 from bsms.rollout import peak_memory_mb, summarize
 from bsms.run import EvaluateConfig, convert_fix, dataset_folder, load_model, resolve_device, saved_options, split_files
 from bsms.solver_runs import SOLVER_SETTINGS, frame_dt, run_solver, setting_label
@@ -49,8 +48,6 @@ from datagen.config import output_folder
 from datagen.dataset import DatasetError, load
 
 __all__ = ["evaluate", "main"]
-
-GROUND_TRUTH = SOLVER_SETTINGS["ground_truth"]
 
 
 @dataclass
@@ -204,7 +201,7 @@ def _summary_rows(results: _Results) -> list[dict]:
         if "max_difference_from_stored" in used[0]:
             row["max_difference_from_stored"] = max(r["max_difference_from_stored"] for r in used)
         rows.append(row)
-    truth = _ground_truth_row(rows)
+    truth = ground_truth_row(rows)
     for row in rows:
         if truth is not None and row.get("seconds_per_sim_second"):
             row["speedup"] = truth["seconds_per_sim_second"] / row["seconds_per_sim_second"]
@@ -212,12 +209,8 @@ def _summary_rows(results: _Results) -> list[dict]:
     return rows
 
 
-def _ground_truth_row(rows: list[dict]) -> dict | None:
-    return next((r for r in rows if r["label"] == GROUND_TRUTH), None)
-
-
 def _charts(out: Path, results: _Results, frame_interval: float, bound: float) -> None:
-    truth = _ground_truth_row(results.rows)
+    truth = ground_truth_row(results.rows)
     points = [{"label": r["label"], "kind": "ground_truth" if r is truth else r["kind"],
                "seconds_per_sim_second": r["seconds_per_sim_second"], "error": pareto.row_point(r, GROUND_TRUTH)[1],
                "unstable": r["unstable"] or bool(r.get("failed")), "dominated": bool(r["dominated_by"]),
@@ -225,7 +218,7 @@ def _charts(out: Path, results: _Results, frame_interval: float, bound: float) -
     field_name = next((r["field"] for r in results.rows if r.get("field")), None)
     scale = f"{field_name} scale" if field_name else "body size"
     viz.speed_accuracy_chart(points, out / "speed_accuracy.png", ylabel=f"rollout RMSE / {scale} (whole rollout)",
-                             rest=_rest(results.rows))
+                             rest=rest(results.rows))
     curves = {label: [m["error_curve"] for m in metrics] for label, metrics in results.learned.items()}
     curves.update({label: [r["error_curve"] for r in runs if "error_curve" in r]
                    for label, runs in results.solver.items()
@@ -278,7 +271,7 @@ def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateCon
         _roll_out(results, methods, trajectories, folder / "hierarchies", options, out, progress)
         _run_solvers(results, trajectories, options, progress)
     results.rows = _summary_rows(results)
-    _write_tables(out, results.rows, _columns(model.spec))
+    write_tables(out, results.rows, columns(model.spec))
     _charts(out, results, frame_dt(trajectories[0]), options.bound)
     training = _training_curve(run_dir, out)
     details = {"run": str(run_dir), "split": options.split, "trajectories": [str(f) for f in files],
@@ -286,8 +279,9 @@ def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateCon
                "learned": results.learned, "solver": results.solver}
     with atomic_path(out / "metrics.json") as tmp:
         tmp.write_text(json.dumps(details, indent=1, default=_json_default))
-    heading = _heading(config, state, options, len(files), dataset_name, model.spec)
-    report = _write_report(run_dir, heading, results, options.bound, training, model.spec)
+    lines = heading(config, state, options, len(files), dataset_name, model.spec)
+    report = write_report(run_dir, lines, results.rows, results.learned, results.pictures, bool(options.solver),
+                          options.bound, training, model.spec)
     return {"rows": results.rows, "report": report}
 
 
@@ -323,138 +317,6 @@ def _json_default(value):
     if isinstance(value, (np.floating, np.integer)):
         return value.item()
     return str(value)
-
-
-# ----------------------------------------------------------------------------- report
-def _fmt(value, digits: int = 3) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, list):  # labels (dominated by)
-        return "; ".join(str(v) for v in value) or "none"
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "-"
-        if math.isinf(value):
-            return "inf"
-        return f"{value:.{digits}g}"
-    return str(value)
-
-
-# (row key, column title) of the metrics table in report.md, speed_accuracy.md and .csv
-_COLUMNS = [
-    ("label", "method"), ("kind", "kind"), ("rmse_1", "RMSE@1 (m)"), ("rmse_50", "RMSE@50 (m)"),
-    ("rmse_all", "RMSE all (m)"), ("rmse_all_std", "± std"), ("rel_all", "RMSE all / body size"),
-    ("unstable", "unstable rollouts"), ("first_unstable_step", "first unstable step"),
-    ("seconds_per_step", "s per frame"), ("seconds_per_sim_second", "s per simulated s"),
-    ("speedup", "speed-up vs solver"), ("peak_memory_mb", "peak memory (MB)"), ("dominated_by", "dominated by"),
-]
-
-
-def _columns(spec) -> list[tuple[str, str]]:
-    """The table's columns; Eulerian data: errors of the first output field, relative to its scale."""
-    if spec.is_lagrangian:
-        return _COLUMNS
-    main = spec.outputs[0].name
-    return [(key, title.replace("(m)", f"({main})").replace("body size", f"{main} scale")) for key, title in _COLUMNS]
-
-
-def _table(rows: list[dict], columns=_COLUMNS) -> str:
-    lines = ["| " + " | ".join(title for _, title in columns) + " |", "|" + "---|" * len(columns)]
-    lines += ["| " + " | ".join(_fmt(row.get(key)) for key, _ in columns) + " |" for row in rows]
-    return "\n".join(lines)
-
-
-def _field_table(rows: list[dict]) -> str:
-    """RMSE per field of every learned row (Eulerian data) as one table."""
-    columns = [("label", "method"), ("field", "field"), ("rmse_1", "RMSE@1"), ("rmse_50", "RMSE@50"),
-               ("rmse_all", "RMSE all"), ("scale", "field scale (RMS)"), ("rel_all", "RMSE all / scale"),
-               ("unstable", "unstable rollouts")]
-    flat = [{**metrics, "label": row["label"], "field": name}
-            for row in rows if "fields" in row for name, metrics in row["fields"].items()]
-    return _table(flat, columns)
-
-
-def _write_tables(out: Path, rows: list[dict], columns=_COLUMNS) -> None:
-    with atomic_path(out / "speed_accuracy.csv") as tmp, open(tmp, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, [key for key, _ in _COLUMNS], extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows({k: _fmt(v) if isinstance(v, list) else v for k, v in row.items()} for row in rows)
-    with atomic_path(out / "speed_accuracy.md") as tmp:
-        tmp.write_text(_table(rows, columns) + "\n")
-
-
-def _heading(config, state, options: EvaluateConfig, n_files: int, dataset_name: str, spec) -> list[str]:
-    steps = "all frames" if options.steps is None else f"{options.steps} steps"
-    errors = "Errors are position RMSE over free body nodes (m)" if spec.is_lagrangian else (
-        f"Data: {spec.describe()}. Errors are RMSE of the `{spec.outputs[0].name}` field over free nodes (the "
-        "data's units; every field under 'RMSE per field')")
-    return [
-        f"# Evaluation of run `{config.name}`", "",
-        f"Model `{config.model.name}` after {int(state['step'])} training steps; {n_files} `{options.split}` "
-        f"trajectories of dataset `{dataset_name}`; rollouts from frame 0 over {steps}. {errors}; times are wall "
-        f"seconds on this machine, measured in this run on {torch.get_num_threads()} CPU thread(s), learned models "
-        "and solver alike.",
-    ]
-
-
-def _stability(rows: list[dict], bound: float, size: str = "body size") -> list[str]:
-    lines = []
-    for row in rows:
-        state = "stable on every trajectory" if not row["unstable"] else \
-            f"unstable on {row['unstable']} of {row['trajectories']} (first at step {row.get('first_unstable_step')})"
-        failure = f"; the solver stopped: {row['failed']}" if row.get("failed") else ""
-        lines.append(f"- {row['label']}: {state} (bound {bound} x {size}){failure}")
-    truth = _ground_truth_row(rows)
-    if truth is not None and "max_difference_from_stored" in truth:
-        lines += ["", f"The solver re-run at the data's settings reproduces the stored trajectories to "
-                      f"{truth['max_difference_from_stored']:.3g} m."]
-    learned = [r for r in rows if r["kind"] == "learned"]
-    if learned and truth is not None:
-        best = min(learned, key=lambda r: r["rmse_all"])
-        lines += ["", f"Fastest learned model speed-up over the ground-truth solver: "
-                      f"{max(r.get('speedup', 0) for r in learned):.3g}x; most accurate: {best['label']} "
-                      f"({_fmt(best['rel_all'])} of the body size over the whole rollout)."]
-    return lines
-
-
-def _rest(rows: list[dict]) -> float | None:
-    """The body-at-rest error of the evaluated trajectories (every learned row holds the same)."""
-    return next((r["rest_rel_all"] for r in rows if "rest_rel_all" in r), None)
-
-
-def _rest_lines(rows: list[dict]) -> list[str]:
-    rest = _rest(rows)
-    if rest is None:
-        return []
-    return [f"Body at rest (no motion predicted, every free node kept where it is at frame 0): RMSE all / body size "
-            f"{_fmt(rest)} on these trajectories (dotted line on the chart); a model above it has learned less than "
-            "nothing.", ""]
-
-
-def _write_report(run_dir: Path, heading: list[str], results: _Results, bound: float, training, spec) -> Path:
-    size = "body size" if spec.is_lagrangian else f"{spec.outputs[0].name} scale"
-    fields = ["## RMSE per field", "", _field_table(results.rows), ""] if not spec.is_lagrangian else []
-    lines = [
-        *heading, "", "## Metrics", "", _table(results.rows, _columns(spec)), "", *fields,
-        "## Speed against accuracy", "", "![speed against accuracy](evaluation/speed_accuracy.png)", "",
-        "The solver at the data's settings is the ground truth (no error of its own); cheaper solver "
-        "settings are the honest baseline a surrogate must beat." if results.solver else
-        "No solver ran (--no-solver, or evaluate.solver: []; converted datasets have no scene to re-run): the "
-        "chart shows the learned models alone.", "", *pareto.front_lines(results.rows, GROUND_TRUTH), "",
-        *_rest_lines(results.rows),
-        "## Error against time", "", "![rollout error](evaluation/error_vs_step.png)", "",
-        "## Stability", "", *_stability(results.rows, bound, size),
-    ]
-    if training is not None:
-        lines += ["", "## Training", "", "![training curve](evaluation/training_curve.png)"]
-    if results.pictures:
-        lines += ["", "## Rollouts (solver left, learned right, coloured by error)", ""]
-        lines += [f"![rollout {k}](evaluation/{Path(p).name})" for k, p in enumerate(results.pictures)]
-        lines += ["", "ParaView: `evaluation/rollout_0.xdmf` (warp by `displacement`)."]
-    path = run_dir / "report.md"
-    with atomic_path(path) as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
-    return path
 
 
 def main(argv=None) -> int:

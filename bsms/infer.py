@@ -7,7 +7,10 @@ scene parameter) -- and the model rolls it out. Meshes larger than any seen in t
 work: the hierarchy is built for the new mesh (its levels are the run's ``graph.levels``).
 Outputs, in ``--out`` (default ``RUN_DIR/infer/<mesh name>``): ``prediction.xdmf`` (+ .h5)
 for ParaView, ``prediction.gif`` and ``summary.json``. With ``--solver`` the MPM solver
-runs the same setup, and the error and speed-up are reported (and drawn in the GIF).
+runs the same setup: ``solver.xdmf`` (+ .h5) holds its body nodes at the same frames (to put
+prediction and truth side by side in ParaView), and ``summary.json`` the error, the error of
+predicting no motion (``rest_rel_all``), their ratio ``vs_rest``, both split into rigid and
+deformation parts (:mod:`bsms.motion`), and the speed-up (the error is drawn in the GIF).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from bsms import viz
 from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.data import NodeType, Scenario
+from bsms.motion import skill
 from bsms.rollout import DEFAULT_BOUND, body_size, rollout_metrics, rollouts
 from bsms.run import load_model, resolve_device, run_dataset_config
 from datagen import simulate
@@ -145,8 +149,10 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
         summary["solver_seconds_per_step"] = trajectory.wall_time / placed.steps
         truth = trajectory.positions
         free = scenario.node_type[: scenario.n_body] == NodeType.FREE
-        metrics = rollout_metrics(predicted, truth, free, body_size(placed.scene.body.nodes), bound)
+        size = body_size(placed.scene.body.nodes)
+        metrics = rollout_metrics(predicted, truth, free, size, bound)
         summary.update({k: metrics[k] for k in ("rmse_1", "rmse_50", "rmse_all", "rel_all", "unstable_step")})
+        summary.update(skill(predicted, truth, free, size, metrics["rel_all"]))
         summary["speedup"] = summary["solver_seconds_per_step"] / result.seconds_per_step
     folder.mkdir(parents=True, exist_ok=True)
     _write_outputs(folder, placed.scene, predicted, truth, placed.frame_dt, placed.obstacle_path)
@@ -208,6 +214,8 @@ def _write_outputs(folder: Path, scene, predicted: np.ndarray, truth, frame_dt: 
     if truth is not None:
         data["error"] = np.linalg.norm(predicted - truth[: len(predicted)], axis=-1)
     viz.write_xdmf(folder / "prediction.xdmf", scene.body.cells, predicted, times, data)
+    if truth is not None:
+        viz.write_xdmf(folder / "solver.xdmf", scene.body.cells, truth[: len(predicted)], times)
     obstacles = None
     if scene.obstacle_nodes is not None and len(scene.obstacle_nodes):
         nodes = scene.obstacle_nodes if obstacle_path is None else obstacle_path[: len(predicted)]
@@ -243,7 +251,8 @@ def main(argv=None) -> int:
         return 2
     for one in summary.get("rollouts", [summary]):
         print(_describe(one))
-        print(f"outputs in {one['out']}: prediction.xdmf (ParaView), prediction.gif, summary.json")
+        solver = ", solver.xdmf" if "rmse_all" in one else ""
+        print(f"outputs in {one['out']}: prediction.xdmf{solver} (ParaView), prediction.gif, summary.json")
     return 0
 
 
@@ -253,7 +262,7 @@ def _describe(summary: dict) -> str:
             f"({summary['seconds_per_step'] * 1e3:.1f} ms per step; levels {summary['graph_nodes_per_level']})")
     if "rmse_all" in summary:
         line += (f"; against the solver: RMSE {summary['rmse_all']:.3g} m ({summary['rel_all']:.3g} of the body "
-                 f"size), speed-up {summary['speedup']:.3g}x")
+                 f"size; {summary['vs_rest']:.3g} of predicting no motion), speed-up {summary['speedup']:.3g}x")
     if not summary["finite"]:
         line += "; the rollout went non-finite"
     return line

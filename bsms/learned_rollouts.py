@@ -7,6 +7,7 @@ import numpy as np
 
 from bsms.data import GraphOptions, Scenario
 from bsms.fields import eulerian_state, initial_velocity, world_positions
+from bsms.motion import motion_parts, skill
 from bsms.rollout import DEFAULT_BOUND, body_size, field_metrics, rollout_metrics, rollouts
 from bsms.solver_runs import free_nodes
 
@@ -18,8 +19,9 @@ def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames
     """(metrics, :class:`~bsms.rollout.Rollout`) of ``model`` on each of ``trajectories``, rolled
     out from frame 0 for ``frames`` steps each as one batch; graphs built by ``graph``, their
     hierarchies cached in ``cache_dir``. Metrics: :func:`~bsms.rollout.rollout_metrics` (with
-    ``bound``, the relative error that marks a rollout unstable) and ``rest_rel_all``
-    (:func:`rest_error`) for Lagrangian data, the first output field's
+    ``bound``, the relative error that marks a rollout unstable) and the skill measures of
+    :func:`bsms.motion.skill` (``rest_rel_all``, ``vs_rest``, rigid and deformation parts) for
+    Lagrangian data, the first output field's
     :func:`~bsms.rollout.field_metrics` for Eulerian data; timing in both. ``scenarios``: the
     trajectories' scenarios if already built with ``graph`` (e.g. a dataset's), else built here."""
     spec = model.spec
@@ -41,8 +43,9 @@ def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames
     for scenario, trajectory, n, result, truth in zip(scenarios, trajectories, frames, results, truths, strict=True):
         if spec.is_lagrangian:
             free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
-            metrics = rollout_metrics(result.positions[:, : scenario.n_body], truth[: n + 1], free, size, bound)
-            metrics["rest_rel_all"] = rest_error(truth[: n + 1], free, size)
+            predicted = result.positions[:, : scenario.n_body]
+            metrics = rollout_metrics(predicted, truth[: n + 1], free, size, bound)
+            metrics.update(skill(predicted, truth[: n + 1], free, size, metrics["rel_all"]))
         else:
             fields = field_metrics(spec, result.states, truth, free_nodes(trajectory), bound)
             main = fields[spec.outputs[0].name]
@@ -58,4 +61,4 @@ def rest_error(truth: np.ndarray, mask: np.ndarray, size: float) -> float:
     """The rollout RMSE over all steps, relative to ``size``, of predicting no motion at all
     (every node kept at frame 0): the error a learned model has to get below to have learned
     anything (a driven scene where most of the body hardly moves has a small one)."""
-    return rollout_metrics(np.broadcast_to(truth[:1], truth.shape), truth, mask, size)["rel_all"]
+    return motion_parts(truth, mask, size)["rest_rel_all"]

@@ -31,6 +31,7 @@ from tqdm import tqdm
 from bsms.data import Scenario
 from bsms.level_graph import level_graph
 from bsms.models.precision import network_dtype
+from bsms.motion import SKILL_KEYS
 
 __all__ = [
     "Rollout", "rollout", "rollouts", "rollout_metrics", "field_metrics", "summarize", "body_size", "peak_memory_mb",
@@ -319,7 +320,7 @@ def summarize(metrics: list[dict]) -> dict:
     Eulerian rollouts the same per field (``fields``)."""
     out = {"trajectories": len(metrics), "unstable": sum(m["unstable_step"] is not None for m in metrics)}
     for key in ("rmse_1", "rmse_50", "rmse_all", "rel_1", "rel_50", "rel_all", "seconds_per_step",
-                "seconds_per_sim_second", "graph_nodes_ratio", "scale", "rest_rel_all"):
+                "seconds_per_sim_second", "graph_nodes_ratio", "scale", *SKILL_KEYS):
         values = np.array([m[key] for m in metrics if key in m], dtype=float)
         if len(values):
             out[key] = float(np.mean(values))

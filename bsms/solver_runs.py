@@ -19,6 +19,7 @@ import numpy as np
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
 from bsms.data import NodeType
+from bsms.motion import skill
 from bsms.rollout import body_size, rollout_metrics
 from datagen import simulate
 from datagen.config import ConfigError
@@ -134,6 +135,7 @@ def free_nodes(trajectory) -> np.ndarray:
 def _failed(message: str, seconds: float, frames: int, trajectory) -> dict:
     return {"failed": message, "unstable_step": 1, "seconds_per_sim_second": seconds / (frames * frame_dt(trajectory)),
             "rmse_all": math.inf, "rmse_1": math.inf, "rmse_50": math.inf, "rel_all": math.inf,
+            "vs_rest": math.inf, "rigid_rel_all": math.inf, "deform_rel_all": math.inf,
             "error_curve": np.full(frames, np.inf)}
 
 
@@ -178,7 +180,9 @@ def _measure(trajectory, config: dict, frames: int, bound: float, threads: int |
         body = trajectory.body_id if trajectory.body_id is not None else np.zeros(len(truth[0]), int)
         other_body = other.body_id if other.body_id is not None else np.zeros(other.positions.shape[1], int)
         positions = interpolate_to(trajectory.mesh.nodes, body, other.mesh.nodes, other_body, positions)
-    metrics = rollout_metrics(positions, truth, free_nodes(trajectory), body_size(trajectory.mesh.nodes), bound)
+    free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
+    metrics = rollout_metrics(positions, truth, free, size, bound)
+    metrics.update(skill(positions, truth, free, size, metrics["rel_all"]))
     metrics["seconds_per_sim_second"] = other.wall_time / (frames * frame_dt(trajectory))
     metrics["seconds_per_step"] = other.wall_time / frames
     metrics.update(dt=float(other.dt), dt_factor=float(other.dt / trajectory.dt), substeps=int(other.substeps))

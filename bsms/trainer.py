@@ -1,20 +1,22 @@
-"""Training: a resumable, interruptible, multi-process trainer of the model a run config describes.
+"""Training: a resumable, interruptible, multi-process trainer of the model a run config
+describes.
 
-The run folder (:mod:`bsms.run`) gains ``metrics.csv`` (step, loss, lr, seconds,
-samples_per_s, valid_rmse) and ``checkpoints/{latest,best}.pt``. Checkpoints hold the model
-with its normalisers, the optimiser, the scheduler, the step and the RNG states; they are
-written atomically and read with ``weights_only=True``. Ctrl-C (SIGINT) stops training after
-the step under way, with ``latest.pt`` saved at that step; a second Ctrl-C stops at once.
+The run folder (:mod:`bsms.run`) gains ``metrics.csv`` (step, loss, lr, seconds, samples_per_s,
+valid_rmse; valid_vs_rest with rollout validation) and ``checkpoints/{latest,best}.pt``.
+Checkpoints hold the model with its normalisers, the optimiser, the scheduler, the step and the
+RNG states; they are written atomically and read with ``weights_only=True``. Ctrl-C (SIGINT)
+stops training after the step under way, with ``latest.pt`` saved at that step; a second Ctrl-C
+stops at once.
 
 Determinism: the samples of step ``s`` are a function of (seed, s) only (a per-epoch
 permutation), and the training noise of a sample of (seed, s, index), so a resumed run
-continues exactly and a batch split over processes sees the same noise as one process.
-Launched with ``torchrun --nproc_per_node K``, each process takes every K-th sample of the
-global batch; gradients are summed over processes after each process divided its squared
-error sum by the free-node count of the whole batch, which makes the update identical to
-one process on the whole batch (normaliser statistics are summed over processes too).
-Multi-step training (``train.unroll``) unrolls each sample over several model steps
-(:mod:`bsms.unroll`); the validation RMSE stays one-step.
+continues exactly and a batch split over processes sees the same noise as one process. Launched
+with ``torchrun --nproc_per_node K``, each process takes every K-th sample of the global batch;
+gradients are summed over processes after each process divided its squared error sum by the
+free-node count of the whole batch, which makes the update identical to one process on the
+whole batch (normaliser statistics are summed over processes too). Multi-step training
+(``train.unroll``) unrolls each sample over several model steps (:mod:`bsms.unroll`); the
+validation RMSE stays one-step.
 """
 
 from __future__ import annotations
@@ -32,13 +34,11 @@ import numpy as np
 import torch
 import torch.distributed as dist
 import yaml
-from torch_geometric.data import Batch
 from tqdm import tqdm
 
 from bsms.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_checkpoint
 from bsms.config import ConfigError, load, to_dict
 from bsms.data import FrameDataset
-from bsms.learned_rollouts import learned_rollouts
 from bsms.models.precision import cpu_has_bf16
 from bsms.run import (
     Config,
@@ -50,12 +50,13 @@ from bsms.run import (
     write_run_files,
 )
 from bsms.unroll import UnrollBatch, UnrollSamples, collate, unrolled_loss
+from bsms.validation import one_step_rmse, rollout_scores
 from datagen.atomic import atomic_path
 from datagen.dataset import load as load_trajectory
 
 __all__ = ["Trainer", "TrainingDiverged", "lr_factor", "METRICS_FIELDS"]
 
-METRICS_FIELDS = ("step", "loss", "lr", "seconds", "samples_per_s", "valid_rmse")
+METRICS_FIELDS = ("step", "loss", "lr", "seconds", "samples_per_s", "valid_rmse", "valid_vs_rest")
 
 # These may change when a run is resumed; anything else must match the run's saved config.
 _OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.workers", "dataset.generate",
@@ -175,6 +176,7 @@ class Trainer:
             raise ConfigError("config key 'train.validation' is 'rollout', but the dataset holds Eulerian fields "
                               f"({self.valid_set.spec.describe()}); validate them one step at a time (one_step)")
         self._valid_trajectories = None  # loaded at the first rollout validation
+        self.valid_vs_rest = None  # the last rollout validation's skill (bsms.motion)
         self.samples = UnrollSamples(self.train_set, config.train.unroll)  # (trajectory, t) with t + K <= T - 1
         if len(self.samples) < config.train.batch_size:
             raise ConfigError(f"config key 'train.batch_size' ({config.train.batch_size}) exceeds the "
@@ -380,41 +382,22 @@ class Trainer:
             error.weights_finite = False
             raise error
 
-    @torch.no_grad()
     def validate(self) -> float:
-        """One-step RMSE over the validation samples of the free nodes' next position (m; Lagrangian
-        data) or first output field (the data's units, e.g. velocity; Eulerian data); with
-        ``train.validation: rollout`` the rollout RMSE over all steps and validation trajectories."""
+        """One-step RMSE over the validation samples (:func:`~bsms.validation.one_step_rmse`); with
+        ``train.validation: rollout`` the rollout RMSE over all steps and validation trajectories,
+        its skill against predicting no motion kept as ``valid_vs_rest``
+        (:func:`~bsms.validation.rollout_scores`)."""
         self.model.eval()
-        if self.config.train.validation == "rollout":
-            return self._validate_rollouts()
-        n = len(self.valid_set)
-        picks = np.unique(np.linspace(0, n - 1, min(n, self.config.train.valid_samples)).round().astype(int))
-        squared, count = 0.0, 0
-        size = self.config.train.batch_size
-        for start in range(0, len(picks), size):
-            batch = Batch.from_data_list([self.valid_set[int(i)] for i in picks[start:start + size]]).to(self.device)
-            change = self.model.output_normalizer.inverse(self.model(batch, precision=self._precision))
-            error, spec = change - batch.target, self.model.spec
-            if spec.is_lagrangian:
-                error = error * batch.frame_dt[:, None]
-            else:
-                error = error[:, spec.output_columns(spec.outputs[0].name)]
-            squared += float(error[batch.loss_mask].square().sum())
-            count += int(batch.loss_mask.sum())
-        return math.sqrt(squared / max(count, 1))
-
-    def _validate_rollouts(self) -> float:
-        """RMSE (m) over every step of every validation trajectory, each rolled out from frame 0
-        (one batch); inf when a rollout goes non-finite."""
+        t = self.config.train
+        if t.validation == "one_step":
+            return one_step_rmse(self.model, self.valid_set, t.valid_samples, t.batch_size, self.device,
+                                 self._precision)
         if self._valid_trajectories is None:
             self._valid_trajectories = [load_trajectory(path) for path in split_files(self.dataset_folder, "valid")]
-        trajectories = self._valid_trajectories
-        frames = [len(t.times) - 1 for t in trajectories]
-        scored = learned_rollouts(self.model, self.config.graph, trajectories, self.dataset_folder / "hierarchies",
-                                  frames, device=self.device, scenarios=self.valid_set.scenarios)
-        squares = [metrics["rmse_all"] ** 2 for metrics, _ in scored]
-        return float(math.sqrt(np.mean(squares))) if np.isfinite(squares).all() else math.inf
+        rmse, self.valid_vs_rest = rollout_scores(self.model, self.config.graph, self._valid_trajectories,
+                                                  self.dataset_folder / "hierarchies", self.device,
+                                                  self.valid_set.scenarios)
+        return rmse
 
     # -- the loop
     def _after_divergence(self, exc: TrainingDiverged) -> TrainingDiverged:
@@ -451,7 +434,8 @@ class Trainer:
         row = {"step": self.step, "loss": f"{np.mean(losses):.6g}", "lr": f"{self.scheduler.get_last_lr()[0]:.6g}",
                "seconds": f"{self.seconds:.3f}",
                "samples_per_s": f"{len(losses) * self.config.train.batch_size / max(elapsed, 1e-9):.3f}",
-               "valid_rmse": "" if rmse is None else f"{rmse:.6g}"}
+               "valid_rmse": "" if rmse is None else f"{rmse:.6g}",
+               "valid_vs_rest": "" if rmse is None or self.valid_vs_rest is None else f"{self.valid_vs_rest:.6g}"}
         with open(self.run_dir / "metrics.csv", "a", newline="") as fh:
             csv.DictWriter(fh, METRICS_FIELDS, lineterminator="\n").writerow(row)
 

@@ -153,3 +153,7 @@ def main(argv=None) -> int:
     return 0
 
 
+
+
+if __name__ == "__main__":  # python -m datagen.generate, like python -m datagen
+    raise SystemExit(main())

@@ -62,7 +62,8 @@ def independent_rollout(run: Path, trajectory_file: str, steps: int):
 # the metric each column of the report's table must show (metrics.json row keys)
 TABLE = {
     "method": "label", "kind": "kind", "RMSE@1 (m)": "rmse_1", "RMSE@50 (m)": "rmse_50", "RMSE all (m)": "rmse_all",
-    "± std": "rmse_all_std", "RMSE all / body size": "rel_all", "unstable rollouts": "unstable",
+    "± std": "rmse_all_std", "RMSE all / body size": "rel_all", "vs at rest": "vs_rest",
+    "rigid part / body size": "rigid_rel_all", "deformation part / body size": "deform_rel_all", "unstable rollouts": "unstable",
     "first unstable step": "first_unstable_step", "s per frame": "seconds_per_step",
     "s per simulated s": "seconds_per_sim_second", "speed-up vs solver": "speedup", "peak memory (MB)": "peak_memory_mb",
     "dominated by": "dominated_by",
@@ -296,4 +297,15 @@ def test_the_body_at_rest_baseline_is_the_error_of_predicting_no_motion(quicksta
     row = details["rows"][0]
     assert row["rest_rel_all"] == pytest.approx(np.mean(expected), rel=1e-12)
     assert row["rest_rel_all"] > 0.01, "the tiny letters fall: no motion is far off"
-    assert f"RMSE all / body size {row['rest_rel_all']:.3g} on these trajectories" in (run / "report.md").read_text()
+    report = (run / "report.md").read_text()
+    assert f"RMSE all / body size {row['rest_rel_all']:.3g} on these trajectories" in report
+    learned = details["learned"]["quickstart"]
+    for metrics, rest in zip(learned, expected, strict=True):  # the skill: error / at-rest error, per trajectory
+        assert metrics["rest_rel_all"] == pytest.approx(rest, rel=1e-12)
+        assert metrics["vs_rest"] == pytest.approx(metrics["rel_all"] / rest, rel=1e-12)
+    assert row["vs_rest"] == pytest.approx(np.mean([m["vs_rest"] for m in learned]), rel=1e-12)
+    for setting in details["rows"][1:]:  # the solver's cheaper settings are measured against the same baseline
+        assert setting["rest_rel_all"] == pytest.approx(row["rest_rel_all"], rel=1e-12), setting["label"]
+    skill = report.split("## Skill per trajectory")[1].split("##")[0]
+    cells = [line.split("|")[1:-1] for line in skill.splitlines() if line.startswith("| mean")]
+    assert len(cells) == 1 and float(cells[0][3]) == pytest.approx(row["vs_rest"], rel=5e-3)

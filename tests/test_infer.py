@@ -58,6 +58,24 @@ def check_outputs(out: Path, summary: dict, steps: int) -> None:
                                                rel=2e-15)
     with Image.open(out / "prediction.gif") as gif:
         assert gif.n_frames == steps + 1
+    predicted = read_positions(out / "prediction.xdmf")
+    solver = read_positions(out / "solver.xdmf")  # the solver's body nodes at the same frames
+    assert solver.shape == predicted.shape and (solver[0] == predicted[0]).all()
+    np.testing.assert_allclose(np.linalg.norm(predicted - solver, axis=-1), errors, rtol=1e-12, atol=1e-15)
+    size = np.linalg.norm(np.ptp(solver[0], axis=0))
+    rest = np.sqrt(np.mean(np.sum((solver[1:] - solver[0]) ** 2, axis=-1))) / size  # predicting no motion
+    assert summary["rest_rel_all"] == pytest.approx(rest, rel=1e-10)
+    assert summary["vs_rest"] == pytest.approx(summary["rel_all"] / rest, rel=1e-10)
+    assert summary["rigid_rel_all"] >= 0 and summary["deform_rel_all"] >= 0
+    assert summary["rest_rigid_rel_all"] <= rest * (1 + 1e-12) and summary["rest_deform_rel_all"] <= rest * (1 + 1e-12)
+
+
+def read_positions(path: Path) -> np.ndarray:
+    """(T, N, d) node positions of an XDMF time series written by datagen.export.write_series."""
+    with meshio.xdmf.TimeSeriesReader(str(path)) as reader:
+        points, _ = reader.read_points_cells()
+        frames = [reader.read_data(k)[1]["position"] for k in range(reader.num_steps)]
+    return np.stack(frames)[..., : points.shape[1] if points.shape[1] < 3 else frames[0].shape[-1]]
 
 
 def test_2d_mesh_file_with_the_solver(run_2d, tmp_path, capsys):
@@ -69,7 +87,9 @@ def test_2d_mesh_file_with_the_solver(run_2d, tmp_path, capsys):
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["steps"] == 3 and summary["finite"] and summary["scene"] == "bodies"
     check_outputs(tmp_path / "out", summary, 3)
-    assert f"against the solver: RMSE {summary['rmse_all']:.3g} m" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"against the solver: RMSE {summary['rmse_all']:.3g} m" in printed
+    assert f"{summary['vs_rest']:.3g} of predicting no motion" in printed and "solver.xdmf" in printed
 
 
 def test_mesh_four_times_larger_than_any_in_training(run_2d, tmp_path):

@@ -123,9 +123,10 @@ def test_overfits_a_tiny_dataset(tiny_dataset, folder, tmp_path, model, ratio, o
         final = float(trainer.model.loss(whole))
     assert final < ratio * first, f"one-step loss fell from {first:.3g} to {final:.3g} only"
     metrics = (tmp_path / "tiny" / "metrics.csv").read_text().splitlines()
-    assert metrics[0] == "step,loss,lr,seconds,samples_per_s,valid_rmse"
+    assert metrics[0] == "step,loss,lr,seconds,samples_per_s,valid_rmse,valid_vs_rest"
     assert [int(line.split(",")[0]) for line in metrics[1:]] == list(range(10, 251, 10))
-    assert metrics[-1].split(",")[-1] != "", "the last step is validated"
+    assert metrics[-1].split(",")[-2] != "", "the last step is validated"
+    assert metrics[-1].split(",")[-1] == "", "one-step validation has no at-rest ratio"
 
 
 def test_rollout_validation_keeps_the_checkpoint_whose_rollouts_are_best(tiny_dataset, folder, tmp_path, one_thread):
@@ -140,13 +141,18 @@ def test_rollout_validation_keeps_the_checkpoint_whose_rollouts_are_best(tiny_da
     trainer = Trainer(load_config(config_dict(tiny_dataset, tmp_path, train={"validation": "rollout"})),
                       dataset_folder=folder)
     trainer.fit()
-    rows = (tmp_path / "tiny" / "metrics.csv").read_text().splitlines()[1:]
-    logged = [float(r.split(",")[-1]) for r in rows if r.split(",")[-1]]
-    assert len(logged) == 2 and np.isfinite(logged).all()
+    import csv
+
+    with open(tmp_path / "tiny" / "metrics.csv", newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["valid_rmse"]]
+    logged = [float(r["valid_rmse"]) for r in rows]
+    skill = [float(r["valid_vs_rest"]) for r in rows]  # the rollouts' error over predicting no motion
+    assert len(logged) == 2 and np.isfinite(logged).all() and np.isfinite(skill).all() and min(skill) > 0
     evaluate(tmp_path / "tiny", options=EvaluateConfig(split="valid", solver=[], gifs=0, batch=1), progress=False)
     learned = json.loads((tmp_path / "tiny" / "evaluation" / "metrics.json").read_text())["learned"]["tiny"]
     assert len(learned) == len(split_files(folder, "valid")) >= 1
     assert np.sqrt(np.mean([m["rmse_all"] ** 2 for m in learned])) == pytest.approx(min(logged), rel=1e-5)
+    assert np.mean([m["vs_rest"] for m in learned]) == pytest.approx(skill[int(np.argmin(logged))], rel=1e-5)
     one_step = Trainer(load_config(config_dict(tiny_dataset, tmp_path / "one")), dataset_folder=folder)
     one_step.model.load_state_dict(trainer.model.state_dict())
     assert one_step.validate() < 0.5 * trainer.validate(), "a rollout's error exceeds the one-step error"

@@ -20,6 +20,10 @@ Gravity points along -y. ``settle_time`` (s): a pre-roll with mass-proportional 
 ``settle_damping`` (1/s) in which the body comes to rest on the floor under gravity before
 frame 0 (the indenter held at its start), so that gravity coming on does not set it ringing;
 ``damping``: mass-proportional damping (1/s) of the nodal velocities during the frames.
+``base``: ``resting`` (the body stands free on the floor: separating contact with friction
+``friction``; pushed, it may slide and tip) or ``bonded`` (the floor is a sticky wall: the
+body's base is glued to it, so that what the indenter makes is deformation, as in a part
+bonded to its support or DeepMind's plate held at its ends).
 ``pose``: ``upright`` sets the body down as given; ``stable`` (:func:`rest_pose`) keeps it so
 where it stands there and otherwise turns it onto the side it rests on most stably, so that no
 body starts out toppling (a J on its hook, a polygon on a corner).
@@ -47,7 +51,7 @@ DEFAULTS = {
     "body_size": 0.0025, "min_nodes": 0, "mesh_size": 0.0075, "damping": 0.0, "settle_time": 0.0,
     "settle_damping": 400.0,
     "indenter": "disk", "indenter_size": [0.02], "indenter_x": 0.0, "indenter_friction": 0.3, "gap": 0.002,
-    "speed": 0.045, "angle": 0.0, "press_time": 0.2, "hold_time": 0.0, "pose": "upright",
+    "speed": 0.045, "angle": 0.0, "press_time": 0.2, "hold_time": 0.0, "pose": "upright", "base": "resting",
 }
 OUTPUT = {"frames": 40, "frame_interval": 0.01}
 SOLVER = {"transfer": "flip"}
@@ -66,7 +70,8 @@ def params(given: dict) -> dict:
     p = check_params(NAME, DEFAULTS, {k: v for k, v in given.items() if k not in optional},
                      positive=("size", "E", "density", "body_size", "mesh_size", "speed", "press_time"),
                      choices={"material": {"linear", "neo_hookean", "fixed_corotated"},
-                              "indenter": set(INDENTER_SIZES), "pose": {"upright", "stable"}})
+                              "indenter": set(INDENTER_SIZES), "pose": {"upright", "stable"},
+                              "base": {"resting", "bonded"}})
     p.update(optional)
     if p["polygon"] is not None and p["mesh"] is not None:
         raise ConfigError("params.polygon and params.mesh both give the body; give one of them (or params.char)")
@@ -183,6 +188,14 @@ def underside(shape: str, sizes: tuple, dx: np.ndarray) -> np.ndarray:
     return dx * sizes[1] / sizes[0]
 
 
+def walls(base: str, friction: float) -> list[Wall]:
+    """The box's walls: separating with ``friction`` everywhere, except a sticky floor (outward
+    normal -y) under a ``bonded`` base."""
+    if base == "resting":
+        return [Wall("separating", lambda c, n: np.ones(len(c), bool), friction)]
+    return [Wall("sticky", lambda c, n: n[:, 1] < -0.5), Wall("separating", lambda c, n: n[:, 1] >= -0.5, friction)]
+
+
 def build(p: dict) -> Scene:
     lower, upper = box_bounds(p["box"])
     body = body_mesh(p)
@@ -200,7 +213,7 @@ def build(p: dict) -> Scene:
     return Scene(
         domain=domain, body=body, x=body.nodes.copy(), v=np.zeros_like(body.nodes), volume=vertex_volumes(body),
         materials=[(material, None)], tracked=np.arange(body.n_nodes),
-        walls=[Wall("separating", lambda c, n: np.ones(len(c), bool), p["friction"])],
+        walls=walls(p["base"], p["friction"]),
         gravity=gravity, grid_spacing=p["mesh_size"],
         obstacle_nodes=np.concatenate([walls_nodes, surface_nodes]),
         obstacle_facets=np.concatenate([walls_facets, surface_facets + len(walls_nodes)]).astype(np.int64),
