@@ -74,6 +74,13 @@ class GraphOptions:
         Kinematic nodes keep the velocity of their coming step. Position noise is then undone
         in full by the target (``noise.gamma`` does not apply; ``noise.velocity`` must be 0).
         Lagrangian data only.
+    displacement: with ``quasi_static``, anchor free nodes to their rest shape: their velocity
+        input is (X - x_t) / dt (the displacement from the rest mesh X, as a velocity over one
+        frame) and the model predicts where they are at the next frame, x_{t+1} = X + dt out,
+        instead of how far they move. A one-step error then does not carry over into the next
+        state, and motion the frames do not resolve (ringing, contact chatter: large in the
+        frame-to-frame velocity, small in the displacement) no longer dominates the targets.
+        For bodies held in place (bonded, clamped): their displacement from rest is bounded.
     """
 
     levels: int = 4
@@ -88,8 +95,12 @@ class GraphOptions:
     self_contact: bool = False
     constants: list[str] = field(default_factory=list)
     quasi_static: bool = False
+    displacement: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
+        if self.displacement and not self.quasi_static:
+            raise ConfigError(f"config key '{prefix}.displacement' anchors quasi-static learning to the rest shape; "
+                              f"set '{prefix}.quasi_static: true' too, or '{prefix}.displacement: false'")
         if not 1 <= self.levels <= 16:
             raise ConfigError(f"config key '{prefix}.levels' must be from 1 to 16 (the mesh included), "
                               f"got {self.levels}")
@@ -460,13 +471,16 @@ class FrameDataset(NumberedSamples):
         target = velocities[t + 1] - velocities[t]
         if self.options.quasi_static:
             free = (scenario.node_type == NodeType.FREE)[:, None]
-            velocity = np.where(free, 0.0, velocity)
             target = np.where(free, velocities[t + 1], target)
             if noise_seed is not None and self.noise.position > 0:
                 dx = free * np.random.default_rng(noise_seed).normal(0.0, self.noise.position, pos.shape)
                 pos += dx
                 target = target - dx / scenario.frame_dt
-            return pos, velocity, target
+            if self.options.displacement:  # anchored to the rest shape: x_{t+1} = X + dt target
+                rest, dt = scenario.rest_pos, scenario.frame_dt
+                return (pos, np.where(free, (rest - pos) / dt, velocity),
+                        np.where(free, (positions[t + 1] - rest) / dt, target))
+            return pos, np.where(free, 0.0, velocity), target
         if noise_seed is not None and (self.noise.position > 0 or self.noise.velocity > 0):
             rng = np.random.default_rng(noise_seed)
             free = (scenario.node_type == NodeType.FREE)[:, None]

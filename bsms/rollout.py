@@ -119,10 +119,15 @@ class _Track:
 
     def _base(self, t: int) -> np.ndarray:
         """The velocities frame t's step starts from: the state's, or 0 on free nodes of a
-        quasi-static model (``graph.quasi_static``: the output is their whole velocity)."""
-        if not self.scenario.options.quasi_static:
+        quasi-static model (``graph.quasi_static``: the output is their whole velocity), or the
+        velocity back to their rest shape over one frame (``graph.displacement``: the output is
+        then where they are at the next frame)."""
+        options = self.scenario.options
+        if not options.quasi_static:
             return self.velocities[t]
-        return np.where(self.scenario.kinematic[:, None], self.velocities[t], 0.0)
+        free = 0.0 if not options.displacement else \
+            (self.scenario.rest_pos - self.positions[t]) / self.scenario.frame_dt
+        return np.where(self.scenario.kinematic[:, None], self.velocities[t], free)
 
     def advance(self, t: int, change: np.ndarray) -> None:
         """Frame t + 1 from frame t and the model's output (N, node_out) of every scenario node:

@@ -170,7 +170,8 @@ class TrainConfig:
     model out from frame 0 on every validation trajectory (m; Lagrangian data only), the measure
     a learned simulator is used by (one-step error ranks checkpoints poorly where errors pile up).
     mirror: every training trajectory also enters reflected by x -> -x (:mod:`bsms.augment`;
-    scenes symmetric under it: gravity along y, isotropic materials)."""
+    scenes symmetric under it: gravity along y, isotropic materials). trajectories: train on the
+    first this many training trajectories only (null: all of them), for learning curves."""
 
     steps: int = 10_000
     batch_size: int = 2
@@ -189,8 +190,12 @@ class TrainConfig:
     unroll_warmup: int = 0
     validation: Literal["one_step", "rollout"] = "one_step"
     mirror: bool = False
+    trajectories: int | None = None
 
     def validate(self, prefix: str) -> None:
+        if self.trajectories is not None and self.trajectories < 1:
+            raise ConfigError(f"config key '{prefix}.trajectories' must be >= 1 (null: every training trajectory), "
+                              f"got {self.trajectories}")
         _at_least(self, prefix, 1, ("steps", "batch_size", "normalizer_steps", "log_every", "valid_every",
                                     "valid_samples", "checkpoint_every", "unroll"))
         _at_least(self, prefix, 0, ("seed", "workers", "unroll_warmup"))

@@ -168,7 +168,7 @@ class Trainer:
         progress = config.train.progress and self.rank == 0
         self.dataset_folder = Path(self._dataset_folder(dataset_folder, base, progress))
         cache = self.dataset_folder / "hierarchies"
-        self.train_set = FrameDataset(split_files(self.dataset_folder, "train"), config.graph, config.noise,
+        self.train_set = FrameDataset(self._train_files(), config.graph, config.noise,
                                       cache_dir=cache, progress=progress, mirror=config.train.mirror)
         self.valid_set = FrameDataset(split_files(self.dataset_folder, "valid"), config.graph, cache_dir=cache,
                                       progress=progress)
@@ -200,6 +200,15 @@ class Trainer:
                 tmp.write_text(",".join(METRICS_FIELDS) + "\n")
 
     # -- setup
+    def _train_files(self) -> list[Path]:
+        """The training trajectories: all of them, or the first ``train.trajectories``."""
+        files, wanted = split_files(self.dataset_folder, "train"), self.config.train.trajectories
+        if wanted is not None and wanted > len(files):
+            raise ConfigError(f"config key 'train.trajectories' asks for {wanted} training trajectories, but "
+                              f"{self.dataset_folder / 'train'} holds {len(files)}; ask for fewer or generate more "
+                              "(splits.train in the dataset config)")
+        return files[:wanted]
+
     @staticmethod
     def _init_distributed() -> tuple[int, int]:
         world = int(os.environ.get("WORLD_SIZE", "1"))

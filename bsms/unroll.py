@@ -141,7 +141,9 @@ def _advance(model, samples: UnrollSamples, states: list[_State], graph: LevelGr
         data_pos, data_velocity, data_target = (_tensor(a, device) for a in frames.sample_state(state.trajectory,
                                                                                                 frame))
         kinematic = torch.from_numpy(scenario.kinematic).to(device)[:, None]
-        if scenario.options.quasi_static:
+        if scenario.options.displacement:  # the velocity back to the rest shape (bsms.data.GraphOptions)
+            velocity = (_tensor(scenario.rest_pos, device) - pos) / scenario.frame_dt
+        elif scenario.options.quasi_static:
             velocity = torch.zeros_like(velocity)
         pos, velocity = torch.where(kinematic, data_pos, pos), torch.where(kinematic, data_velocity, velocity)
         truth = _tensor(frames.positions[state.trajectory][frame + 1], device)

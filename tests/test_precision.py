@@ -69,6 +69,9 @@ def test_auto_is_bf16_only_where_the_hardware_has_it(monkeypatch):
     for has_bf16, expected in ((True, torch.bfloat16), (False, torch.float32)):
         monkeypatch.setattr(precision, "cpu_has_bf16", lambda has_bf16=has_bf16: has_bf16)
         assert precision.network_dtype("auto", "cpu") == expected
+        assert precision.network_dtype("auto", "cpu", precision.CPU_BF16_MIN_LATENT) == expected
+        assert precision.network_dtype("auto", "cpu", 32) == torch.float32, "narrow networks are faster in f32"
+        assert precision.network_dtype("bf16", "cpu", 32) == torch.bfloat16
         assert precision.network_dtype("bf16", "cpu") == torch.bfloat16
         assert precision.network_dtype("f32", "cpu") == torch.float32
     assert precision.network_dtype("auto", "meta") == torch.float32

@@ -90,3 +90,71 @@ def test_quasi_static_with_velocity_noise_is_a_config_error(files):
         FrameDataset(files, GraphOptions(levels=3, quasi_static=True), NoiseOptions(velocity=0.01))
     assert str(error.value).startswith("config key 'graph.quasi_static' needs Lagrangian data and 'noise.velocity' 0 "
                                        "(free nodes have no velocity input)")
+
+
+# ----------------------------------------------------------------------------- graph.displacement
+@pytest.fixture(scope="module")
+def anchored(files):
+    return FrameDataset(files, GraphOptions(levels=3, quasi_static=True, displacement=True))
+
+
+def test_anchored_samples_see_their_displacement_and_target_the_next_frame_from_rest(files, anchored):
+    """graph.displacement: a free node's velocity input is (X - x_t) / dt, and X + dt target is
+    the next frame, with or without position noise (the target is absolute: noise leaves it)."""
+    noisy = FrameDataset(files, GraphOptions(levels=3, quasi_static=True, displacement=True),
+                         NoiseOptions(position=1e-3))
+    for k, t in [(0, 0), (0, 3), (1, 5)]:
+        scenario = anchored.scenarios[k]
+        free = scenario.node_type == NodeType.FREE
+        x, dt, rest = anchored.positions[k], scenario.frame_dt, scenario.rest_pos
+        clean = anchored.sample_state(k, t)
+        for pos, velocity, target in (clean, noisy.sample_state(k, t, (7, k, t))):
+            np.testing.assert_allclose(velocity[free], ((rest - pos) / dt)[free], rtol=1e-15, atol=0)
+            np.testing.assert_allclose((rest + dt * target)[free], x[t + 1][free], rtol=0, atol=1e-14)
+            np.testing.assert_allclose((pos + dt * (velocity + target))[free], x[t + 1][free], rtol=0, atol=1e-14)
+        np.testing.assert_array_equal(noisy.sample_state(k, t, (7, k, t))[2][free], clean[2][free])
+
+
+def test_an_exact_anchored_model_unrolls_along_the_data(anchored):
+    model = Stub(oracle)
+    model.output_normalizer.accumulate(torch.randn(50, 2))
+    samples = UnrollSamples(anchored, K)
+    batch, located = whole_batch(samples)
+    record = []
+    assert float(unrolled_loss(model, batch, samples, K, "all", record=record)) == 0.0
+    for k, (graph, _) in enumerate(record):
+        expected = Batch.from_data_list([anchored[int(anchored._starts[j]) + t + k] for j, t in located])
+        for name in ("pos", "velocity", "target"):
+            torch.testing.assert_close(graph[name], expected[name], rtol=0, atol=2e-6, msg=f"step {k}: {name}")
+
+
+def test_an_anchored_rollout_puts_free_nodes_at_rest_plus_dt_times_the_output(anchored):
+    def rule(model, graph):
+        return 0.3 * torch.tanh(graph.pos * 40.0) - 0.1
+
+    samples = UnrollSamples(anchored, K)
+    j, t = samples.locate(len(samples) - 1)
+    unrolled = Stub(rule)
+    unrolled.output_normalizer.accumulate(torch.randn(50, 2))
+    rolled = Stub(rule)
+    rolled.load_state_dict(unrolled.state_dict())
+    unrolled_loss(unrolled, collate([samples[len(samples) - 1]]), samples, K, "through")
+    x, v = anchored.positions[j], anchored.velocities[j]
+    scenario = anchored.scenarios[j]
+    result = rollout(rolled, scenario, x[t], v[t], K, known_positions=x[t:], warmup=0, precision="f32")
+    for k, (a, b) in enumerate(zip(unrolled.seen, rolled.seen, strict=True)):  # training unrolls as rollouts run
+        for name, p, q in zip(("pos", "velocity", "nodes"), a, b, strict=True):
+            assert torch.equal(p, q), f"step {k}: {name} differs from the rollout's"
+    free, dt = scenario.node_type == NodeType.FREE, scenario.frame_dt
+    seen_velocity, nodes = rolled.seen[0][1].double().numpy(), rolled.seen[0][2].numpy()
+    np.testing.assert_allclose(seen_velocity[free[nodes]], ((scenario.rest_pos - x[t]) / dt)[nodes][free[nodes]],
+                               rtol=1e-6, atol=1e-6)
+    change = rolled.output_normalizer.inverse(rule(rolled, scenario.graph(x[t], v[t]))).double().numpy()
+    np.testing.assert_allclose(result.positions[1][nodes][free[nodes]],
+                               (scenario.rest_pos[nodes] + dt * change)[free[nodes]], rtol=0, atol=1e-9)
+
+
+def test_displacement_without_quasi_static_is_a_config_error():
+    with pytest.raises(ConfigError, match=r"'graph.displacement' anchors quasi-static learning to the rest shape; "
+                                          r"set 'graph.quasi_static: true' too"):
+        GraphOptions(displacement=True).validate()

@@ -302,3 +302,18 @@ def test_shipped_training_configs_are_valid(path):
     assert config.graph.contact == (dataset["family"] != "cantilever")
     for name in config.graph.constants:  # every constant is a scene parameter the family varies
         assert name.removeprefix("log_") in dataset.get("ranges", {}) or name.removeprefix("log_") in dataset["params"]
+
+
+def test_train_trajectories_takes_the_first_n_and_names_the_shortfall(tiny_dataset, folder, tmp_path):
+    """train.trajectories (learning curves) trains on the first N training files only."""
+    files = split_files(folder, "train")
+    trainer = Trainer(load_config(config_dict(tiny_dataset, tmp_path, train={"trajectories": 1})),
+                      dataset_folder=folder)
+    assert trainer.train_set.files == [str(files[0])]
+    assert len(trainer.train_set) == len(trainer.train_set.positions[0]) - 1
+    with pytest.raises(ConfigError, match=rf"'train.trajectories' asks for 99 training trajectories, but .* holds "
+                                          rf"{len(files)}; ask for fewer"):
+        Trainer(load_config(config_dict(tiny_dataset, tmp_path / "b", train={"trajectories": 99})),
+                dataset_folder=folder)
+    with pytest.raises(ConfigError, match=r"'train.trajectories' must be >= 1"):
+        load_config(config_dict(tiny_dataset, tmp_path, train={"trajectories": 0}))

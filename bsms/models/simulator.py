@@ -79,7 +79,7 @@ class LearnedSimulator(nn.Module):
         spec = FieldSpec.lagrangian(dim) if fields is None else fields
         if spec.dim != dim or (contact and spec.contact_edge_dim is None):
             raise ValueError(f"the field spec ({spec.describe()}) does not fit dim={dim}, contact={contact}")
-        self.dim, self.contact, self.spec = dim, contact, spec
+        self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
         node_in = spec.node_in + spec.n_types + n_constants
         edge_dims = [spec.mesh_edge_dim] + ([spec.contact_edge_dim] if contact else [])
@@ -150,7 +150,7 @@ class LearnedSimulator(nn.Module):
         network's number format; features and normalisers are float32 in every precision."""
         if graph.n_levels < self.n_levels:
             raise ValueError(f"the graph has {graph.n_levels} levels but the model needs {self.n_levels}")
-        dtype = network_dtype(precision, graph.pos.device)
+        dtype = network_dtype(precision, graph.pos.device, self.latent)
         raw = self.node_features(graph)
         if accumulate:
             self.node_normalizer.accumulate(raw)
