@@ -74,13 +74,11 @@ class GraphOptions:
         Kinematic nodes keep the velocity of their coming step. Position noise is then undone
         in full by the target (``noise.gamma`` does not apply; ``noise.velocity`` must be 0).
         Lagrangian data only.
-    displacement: with ``quasi_static``, anchor free nodes to their rest shape: their velocity
-        input is (X - x_t) / dt (the displacement from the rest mesh X, as a velocity over one
-        frame) and the model predicts where they are at the next frame, x_{t+1} = X + dt out,
-        instead of how far they move. A one-step error then does not carry over into the next
-        state, and motion the frames do not resolve (ringing, contact chatter: large in the
-        frame-to-frame velocity, small in the displacement) no longer dominates the targets.
-        For bodies held in place (bonded, clamped): their displacement from rest is bounded.
+    displacement: with ``quasi_static``, free nodes also see where they are: their velocity
+        input is (X - x_t) / dt, their displacement from the rest mesh X as a velocity over one
+        frame, instead of 0; the output stays their velocity over the coming frame. The model
+        then knows how far each node is from rest (not only the strain), which a body held in
+        place (bonded, clamped) returns to.
     """
 
     levels: int = 4
@@ -476,11 +474,8 @@ class FrameDataset(NumberedSamples):
                 dx = free * np.random.default_rng(noise_seed).normal(0.0, self.noise.position, pos.shape)
                 pos += dx
                 target = target - dx / scenario.frame_dt
-            if self.options.displacement:  # anchored to the rest shape: x_{t+1} = X + dt target
-                rest, dt = scenario.rest_pos, scenario.frame_dt
-                return (pos, np.where(free, (rest - pos) / dt, velocity),
-                        np.where(free, (positions[t + 1] - rest) / dt, target))
-            return pos, np.where(free, 0.0, velocity), target
+            anchor = (scenario.rest_pos - pos) / scenario.frame_dt if self.options.displacement else 0.0
+            return pos, np.where(free, anchor, velocity), target
         if noise_seed is not None and (self.noise.position > 0 or self.noise.velocity > 0):
             rng = np.random.default_rng(noise_seed)
             free = (scenario.node_type == NodeType.FREE)[:, None]

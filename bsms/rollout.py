@@ -110,7 +110,7 @@ class _Track:
         if self.states is not None:
             fields = self.spec.input_values(self.states[t])
             return self.scenario.frame(self.positions[t], self.velocities[t], fields=fields)
-        velocity, kinematic = self._base(t), self.scenario.kinematic
+        velocity, kinematic = self._input(t), self.scenario.kinematic
         if kinematic.any():
             velocity = velocity.copy()
             velocity[kinematic] = 0.0 if self.known is None else \
@@ -119,15 +119,19 @@ class _Track:
 
     def _base(self, t: int) -> np.ndarray:
         """The velocities frame t's step starts from: the state's, or 0 on free nodes of a
-        quasi-static model (``graph.quasi_static``: the output is their whole velocity), or the
-        velocity back to their rest shape over one frame (``graph.displacement``: the output is
-        then where they are at the next frame)."""
-        options = self.scenario.options
-        if not options.quasi_static:
+        quasi-static model (``graph.quasi_static``: the output is their whole velocity)."""
+        if not self.scenario.options.quasi_static:
             return self.velocities[t]
-        free = 0.0 if not options.displacement else \
-            (self.scenario.rest_pos - self.positions[t]) / self.scenario.frame_dt
-        return np.where(self.scenario.kinematic[:, None], self.velocities[t], free)
+        return np.where(self.scenario.kinematic[:, None], self.velocities[t], 0.0)
+
+    def _input(self, t: int) -> np.ndarray:
+        """The velocity input of frame t's graph: the base (:meth:`_base`), except on free nodes
+        of an anchored model (``graph.displacement``): their velocity back to rest over a frame."""
+        base = self._base(t)
+        if not self.scenario.options.displacement:
+            return base
+        anchor = (self.scenario.rest_pos - self.positions[t]) / self.scenario.frame_dt
+        return np.where(self.scenario.kinematic[:, None], base, anchor)
 
     def advance(self, t: int, change: np.ndarray) -> None:
         """Frame t + 1 from frame t and the model's output (N, node_out) of every scenario node:
