@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bsms import evaluate, pareto, solver_runs, viz
+from bsms import pareto, report, solver_runs, viz
 from bsms.solver_runs import SOLVER_SETTINGS, STABILITY_FACTORS, setting_config, setting_label
 from datagen.config import ConfigError
 from datagen.mpm import SimulationError
@@ -88,12 +88,12 @@ def test_rows_are_marked_honestly():
 def test_report_column_dominated_by():
     _, rows = rows_example()
     pareto.mark_rows(rows, reference=rows[2]["label"])
-    table = evaluate._table(rows, [("label", "method"), ("dominated_by", "dominated by")]).splitlines()
+    table = report.table(rows, [("label", "method"), ("dominated_by", "dominated by")]).splitlines()
     assert table[0] == "| method | dominated by |"
     assert table[2:] == ["| model | coarse |", "| shaky | none |", f"| {rows[2]['label']} | none |",
                          "| coarse | none |", "| big step | none |", f"| slow model | {rows[2]['label']} |"]
-    assert evaluate._fmt(["a, b", "c"]) == "a, b; c", "labels hold commas: they are joined with '; '"
-    assert ("dominated_by", "dominated by") in evaluate._COLUMNS
+    assert report.fmt(["a, b", "c"]) == "a, b; c", "labels hold commas: they are joined with '; '"
+    assert ("dominated_by", "dominated by") in report.COLUMNS
 
 
 # ----------------------------------------------------------------------------- settings
