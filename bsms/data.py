@@ -12,7 +12,6 @@ per level, of the body nodes and the obstacle nodes within reach of them
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 import torch
@@ -25,6 +24,7 @@ from bsms.graph import bistride_levels
 from bsms.graph.frames import SubHierarchy
 from bsms.graph.obstacles import ObstacleReach, Subdivision, facet_edges, subdivide_obstacles
 from bsms.level_graph import FrameArrays, LevelGraph, level_graph
+from bsms.options import GraphOptions, NoiseOptions, saved_graph_options
 from datagen.dataset import DatasetError
 from datagen.trajectory import NodeType
 
@@ -38,98 +38,6 @@ N_NODE_TYPES = len(NodeType)
 
 
 # ----------------------------------------------------------------------------- trajectories
-@dataclass
-class GraphOptions:
-    """How a trajectory becomes graphs (the ``graph`` section of a training config).
-
-    levels: bi-stride levels, the mesh included (every graph of a run has exactly this many,
-        so that batches line up; meshgraphnets uses level 0 only).
-    seeding, self_loops: options of :func:`bsms.graph.bistride_levels`.
-    obstacles: add the wall/container geometry of the trajectory as OBSTACLE nodes (with the
-        edges of its facets), so that the model can see the walls it bounces off.
-    contact: add world-space contact edges per frame, carried to every level.
-    contact_radius: contact distance in units of the median rest edge length of the body.
-        MPM bodies feel a wall about one background cell before they reach it, so it should
-        cover a background cell (the family configs use 3 body edges = ~1.5 cells).
-    contact_distance: the contact distance in world units instead (null: contact_radius
-        applies), as datasets give it (DeepMind's deforming plate: 0.03).
-    obstacle_spacing: obstacle facets are subdivided until no obstacle edge is longer than
-        this many median body edges (0: keep the geometry as stored), so that a body node
-        near a wall always finds wall nodes within the contact radius (with spacing 2 and
-        radius 3, any body node within 2.8 edges of a wall does).
-    obstacle_margin: lean obstacles: a frame's graph holds only the obstacle nodes within
-        contact_radius + obstacle_margin median body edges of a body node (and, on coarser
-        levels, their parents; :mod:`bsms.graph.frames`), chosen anew every frame; walls no
-        body is near cost nothing. null: every obstacle node in every frame (the graph of runs
-        saved before this option; :func:`saved_graph_options`).
-    self_contact: also join close nodes of the same body that are not mesh neighbours.
-    constants: scene parameters (names in the trajectory's ``params``) fed to every node,
-        such as ``E``; positive values spanning a decade or more are best given as ``log_E``
-        (the natural log of ``E``).
-    quasi_static: first-order learning for driven, slow scenes (DeepMind's DEFORMINGPLATE):
-        free nodes get no velocity input (0), and the model predicts their whole velocity over
-        the coming frame, x_{t+1} = x_t + dt out, so a one-step error grows a rollout's error
-        linearly, not quadratically, and motion the frames cannot resolve (elastic ringing,
-        contact chatter aliased by the frame interval) is neither an input nor carried over.
-        Kinematic nodes keep the velocity of their coming step. Position noise is then undone
-        in full by the target (``noise.gamma`` does not apply; ``noise.velocity`` must be 0).
-        Lagrangian data only.
-    displacement: with ``quasi_static``, free nodes also see where they are: their velocity
-        input is (X - x_t) / dt, their displacement from the rest mesh X as a velocity over one
-        frame, instead of 0; the output stays their velocity over the coming frame. The model
-        then knows how far each node is from rest (not only the strain), which a body held in
-        place (bonded, clamped) returns to.
-    """
-
-    levels: int = 4
-    seeding: Literal["min_ave", "close_center", "random"] = "min_ave"
-    self_loops: bool = True
-    obstacles: bool = True
-    contact: bool = True
-    contact_radius: float = 3.0
-    contact_distance: float | None = None
-    obstacle_spacing: float = 2.0
-    obstacle_margin: float | None = 0.0
-    self_contact: bool = False
-    constants: list[str] = field(default_factory=list)
-    quasi_static: bool = False
-    displacement: bool = False
-
-    def validate(self, prefix: str = "graph") -> None:
-        if self.displacement and not self.quasi_static:
-            raise ConfigError(f"config key '{prefix}.displacement' anchors quasi-static learning to the rest shape; "
-                              f"set '{prefix}.quasi_static: true' too, or '{prefix}.displacement: false'")
-        if not 1 <= self.levels <= 16:
-            raise ConfigError(f"config key '{prefix}.levels' must be from 1 to 16 (the mesh included), "
-                              f"got {self.levels}")
-        if self.obstacle_spacing < 0:
-            raise ConfigError(f"config key '{prefix}.obstacle_spacing' must be >= 0 (0 keeps the stored "
-                              f"geometry), got {self.obstacle_spacing}")
-        if self.obstacle_margin is not None and self.obstacle_margin < 0:
-            raise ConfigError(f"config key '{prefix}.obstacle_margin' must be >= 0 (in median rest edge lengths) "
-                              f"or null (every obstacle node), got {self.obstacle_margin}")
-        if self.contact_distance is not None and self.contact_distance <= 0:
-            raise ConfigError(f"config key '{prefix}.contact_distance' must be positive (world units) or null, "
-                              f"got {self.contact_distance}")
-        if self.contact_radius <= 0:
-            raise ConfigError(f"config key '{prefix}.contact_radius' must be positive (in median rest edge "
-                              f"lengths), got {self.contact_radius}")
-        for name in self.constants:
-            if not name or name == "log_":
-                raise ConfigError(f"config key '{prefix}.constants' holds an empty name")
-
-
-# Graph options added after runs were saved with the behaviour before them: a saved run that
-# lacks one was trained with this value (the new default applies to new runs only).
-_BEFORE = {"obstacle_margin": None}
-
-
-def saved_graph_options(graph: dict | None) -> dict:
-    """The ``graph`` section of a saved run's config, completed with the values it was trained
-    with for the options it predates (lean obstacles: every obstacle node in every frame)."""
-    return {**_BEFORE, **(graph or {})}
-
-
 def scene_constant(params: dict, name: str, source: str = "the trajectory") -> float:
     """The value of constant ``name`` (``X`` or ``log_X``) from scene parameters ``params``."""
     key = name[4:] if name.startswith("log_") else name
@@ -320,55 +228,6 @@ class Scenario:
               fields: np.ndarray | None = None) -> LevelGraph:
         """The :class:`LevelGraph` of one state (see :meth:`frame`)."""
         return level_graph([self.frame(pos, velocity, target, fields)])
-
-
-@dataclass
-class NoiseOptions:
-    """Training noise on the inputs of free nodes, with the target corrected (``data.noise``).
-
-    position: std (m) added to x_t; the input velocity sees it, and the target asks for a
-        fraction ``gamma`` of it to be undone in position (gamma = 0 restores the velocity only,
-        1 also the position; MeshGraphNets uses 0.1 for cloth). Lagrangian data only.
-    velocity: std (m/s) added to the input velocity only; the target restores the velocity.
-        On Eulerian data: the std of the velocity field's noise (the target of its change
-        restores it).
-    fields: Eulerian data: std of the noise on other input fields by name, e.g. ``{density: 10}``
-        (thesis Table 4.4); a predicted change restores it.
-    """
-
-    position: float = 0.0
-    velocity: float = 0.0
-    gamma: float = 0.1
-    fields: dict[str, float] = field(default_factory=dict)
-
-    def validate(self, prefix: str = "noise") -> None:
-        for name in ("position", "velocity"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"config key '{prefix}.{name}' is a standard deviation and must be >= 0, "
-                                  f"got {getattr(self, name)}")
-        for name, std in self.fields.items():
-            if std < 0 or name in ("velocity", "position"):
-                raise ConfigError(f"config key '{prefix}.fields.{name}' must be a standard deviation >= 0 of a field "
-                                  f"other than velocity (that is '{prefix}.velocity'), got {std}")
-        if not 0.0 <= self.gamma <= 1.0:
-            raise ConfigError(f"config key '{prefix}.gamma' must lie in [0, 1], got {self.gamma}")
-
-    def field_std(self, name: str) -> float:
-        """Noise std of Eulerian input field ``name``."""
-        return self.velocity if name == "velocity" else float(self.fields.get(name, 0.0))
-
-    def check(self, spec: FieldSpec, source: str, prefix: str = "noise") -> None:
-        """ConfigError where the noise names what ``spec`` (the data's fields) does not have."""
-        if spec.is_lagrangian and self.fields:
-            raise ConfigError(f"config key '{prefix}.fields' applies to Eulerian data; {source} is Lagrangian (use "
-                              f"'{prefix}.position' and '{prefix}.velocity')")
-        inputs = [f.name for f in spec.inputs]
-        unknown = [name for name in self.fields if name not in inputs]
-        if not spec.is_lagrangian and (self.position > 0 or unknown):
-            key = f"{prefix}.position" if self.position > 0 else f"{prefix}.fields.{unknown[0]}"
-            raise ConfigError(f"config key '{key}' does not apply: {source} is Eulerian (a fixed mesh) with input "
-                              f"fields {', '.join(inputs)}; give their noise as '{prefix}.velocity' and "
-                              f"'{prefix}.fields.NAME'")
 
 
 class NumberedSamples(torch.utils.data.Dataset):
