@@ -89,3 +89,20 @@ def test_a_rollout_that_stopped_or_went_non_finite_has_infinite_parts():
         parts = error_parts(predicted, truth, np.ones(3, bool), 1.0)
         assert parts == {"rigid_rel_all": math.inf, "deform_rel_all": math.inf}
     assert skill(truth, np.repeat(truth[:1], 4, 0), np.ones(3, bool), 1.0, 0.1)["vs_rest"] == math.inf
+
+
+def test_the_surrogate_benchmark_last_line_carries_the_at_rest_ratio():
+    """benchmarks/surrogate_vs_solver.py ends with the line the issue fixes, vs_rest included."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from surrogate_vs_solver import verdict
+
+    rows = [{"label": "model", "kind": "learned", "speedup": 51.23, "rel_all": 0.00412, "vs_rest": 0.2871,
+             "unstable": 0, "trajectories": 8, "dominated_by": []},
+            {"label": "solver, time step 2x larger", "kind": "solver", "dominated_by": []}]
+    assert verdict(rows) == ("surrogate: speedup 51.2 x, rel RMSE all 0.00412, vs at rest 0.287, unstable 0 of 8, "
+                             "dominated by none")
+    rows[0]["dominated_by"] = ["solver, largest stable time step (3.95x-4x)", "solver, time step 2x larger"]
+    assert verdict(rows).endswith("dominated by stability_limit, large_step")
