@@ -22,7 +22,7 @@ __all__ = ["PRECISIONS", "CPU_BF16_MIN_LATENT", "cpu_has_bf16", "bf16_supported"
 PRECISIONS = ("auto", "bf16", "f32")
 # On a CPU, narrow networks are faster in float32: their products are too small for bfloat16's
 # speed to pay for the casts. Measured on the press graph (1,300 nodes, 6 levels, one thread of an
-# AVX512-BF16 Xeon): latent 32 f32 29 ms / bf16 35 ms, 64: 38 / 50 ms, 96: 88 / 52 ms, 128: 103 / 65 ms.
+# AMX-BF16/AVX512-BF16 Xeon): latent 32 f32 29 ms / bf16 35 ms, 64: 38 / 50 ms, 96: 88 / 52 ms, 128: 103 / 65 ms.
 CPU_BF16_MIN_LATENT = 96
 
 
