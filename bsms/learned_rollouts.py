@@ -7,11 +7,11 @@ import numpy as np
 
 from bsms.data import GraphOptions, Scenario
 from bsms.fields import eulerian_state, initial_velocity, world_positions
-from bsms.motion import motion_parts, skill
+from bsms.motion import skill
 from bsms.rollout import DEFAULT_BOUND, body_size, field_metrics, rollout_metrics, rollouts
 from bsms.solver_runs import free_nodes
 
-__all__ = ["learned_rollouts", "rest_error"]
+__all__ = ["learned_rollouts"]
 
 
 def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames: list[int],
@@ -56,9 +56,3 @@ def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames
         out.append((metrics, result))
     return out
 
-
-def rest_error(truth: np.ndarray, mask: np.ndarray, size: float) -> float:
-    """The rollout RMSE over all steps, relative to ``size``, of predicting no motion at all
-    (every node kept at frame 0): the error a learned model has to get below to have learned
-    anything (a driven scene where most of the body hardly moves has a small one)."""
-    return motion_parts(truth, mask, size)["rest_rel_all"]

@@ -59,30 +59,44 @@ def test_an_exact_model_unrolls_along_the_data(frames):
             torch.testing.assert_close(graph[name], expected[name], rtol=0, atol=2e-6, msg=f"step {k}: {name}")
 
 
-def test_the_unroll_integrates_as_a_quasi_static_rollout(frames):
-    def rule(model, graph):  # depends on the state, so any difference in the inputs shows
-        return 0.3 * torch.tanh(graph.pos * 40.0) - 0.1
+def _rule(model, graph):  # depends on the state, so any difference in the inputs shows
+    return 0.3 * torch.tanh(graph.pos * 40.0) - 0.1
 
+
+def unroll_and_roll_out(frames):
+    """The last sample of ``frames`` unrolled over K steps as training does ("through") and the
+    same start rolled out by a copy of the same stub; every step's model inputs must be equal.
+    -> (the rolled stub, the rollout, the scenario, x_t, v_t)."""
     samples = UnrollSamples(frames, K)
     j, t = samples.locate(len(samples) - 1)
-    unrolled = Stub(rule)
+    unrolled = Stub(_rule)
     unrolled.output_normalizer.accumulate(torch.randn(50, 2))
-    rolled = Stub(rule)
+    rolled = Stub(_rule)
     rolled.load_state_dict(unrolled.state_dict())
     unrolled_loss(unrolled, collate([samples[len(samples) - 1]]), samples, K, "through")
     x, v = frames.positions[j], frames.velocities[j]
     result = rollout(rolled, frames.scenarios[j], x[t], v[t], K, known_positions=x[t:], warmup=0, precision="f32")
-    free = frames.scenarios[j].node_type == NodeType.FREE
     for k, (a, b) in enumerate(zip(unrolled.seen, rolled.seen, strict=True)):
         for name, p, q in zip(("pos", "velocity", "nodes"), a, b, strict=True):
             assert torch.equal(p, q), f"step {k}: {name} differs from the rollout's"
-        assert not b[1][free[b[2].numpy()]].any(), "no free velocity reaches the model"
-    # first order: each step moves free nodes by dt times the model's output, not by v_t + dv
-    change = rolled.output_normalizer.inverse(rule(rolled, frames.scenarios[j].graph(x[t], v[t]))).double().numpy()
-    dt = frames.scenarios[j].frame_dt
+    return rolled, result, frames.scenarios[j], x[t], v[t]
+
+
+def assert_first_order(rolled, result, scenario, x, v):
+    """Each step moves free nodes by dt times the model's output, not by v_t + dv."""
+    free = scenario.node_type == NodeType.FREE
+    change = rolled.output_normalizer.inverse(_rule(rolled, scenario.graph(x, v))).double().numpy()
     step = result.positions[1] - result.positions[0]
     nodes = rolled.seen[0][2].numpy()
-    np.testing.assert_allclose(step[nodes][free[nodes]], dt * change[free[nodes]], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(step[nodes][free[nodes]], scenario.frame_dt * change[free[nodes]], rtol=0, atol=1e-9)
+
+
+def test_the_unroll_integrates_as_a_quasi_static_rollout(frames):
+    rolled, result, scenario, x, v = unroll_and_roll_out(frames)
+    free = scenario.node_type == NodeType.FREE
+    for _, velocity, nodes in rolled.seen:
+        assert not velocity[free[nodes.numpy()]].any(), "no free velocity reaches the model"
+    assert_first_order(rolled, result, scenario, x, v)
 
 
 def test_quasi_static_with_velocity_noise_is_a_config_error(files):
@@ -129,32 +143,14 @@ def test_an_exact_anchored_model_unrolls_along_the_data(anchored):
 
 
 def test_an_anchored_rollout_sees_the_displacement_and_unrolls_as_training(anchored):
-    def rule(model, graph):
-        return 0.3 * torch.tanh(graph.pos * 40.0) - 0.1
-
-    samples = UnrollSamples(anchored, K)
-    j, t = samples.locate(len(samples) - 1)
-    unrolled = Stub(rule)
-    unrolled.output_normalizer.accumulate(torch.randn(50, 2))
-    rolled = Stub(rule)
-    rolled.load_state_dict(unrolled.state_dict())
-    unrolled_loss(unrolled, collate([samples[len(samples) - 1]]), samples, K, "through")
-    x, v = anchored.positions[j], anchored.velocities[j]
-    scenario = anchored.scenarios[j]
-    result = rollout(rolled, scenario, x[t], v[t], K, known_positions=x[t:], warmup=0, precision="f32")
-    for k, (a, b) in enumerate(zip(unrolled.seen, rolled.seen, strict=True)):  # training unrolls as rollouts run
-        for name, p, q in zip(("pos", "velocity", "nodes"), a, b, strict=True):
-            assert torch.equal(p, q), f"step {k}: {name} differs from the rollout's"
+    rolled, result, scenario, x, v = unroll_and_roll_out(anchored)
     free, dt = scenario.node_type == NodeType.FREE, scenario.frame_dt
     for k, (pos, velocity, nodes) in enumerate(rolled.seen):  # every step sees the displacement from rest
         mine = free[nodes.numpy()]
         expected = (scenario.rest_pos[nodes.numpy()] - pos.double().numpy()) / dt
         np.testing.assert_allclose(velocity.double().numpy()[mine], expected[mine], rtol=1e-5, atol=1e-4,
                                    err_msg=f"step {k}")
-    nodes = rolled.seen[0][2].numpy()
-    change = rolled.output_normalizer.inverse(rule(rolled, scenario.graph(x[t], v[t]))).double().numpy()
-    step = result.positions[1] - result.positions[0]  # first order: dt times the output, as quasi-static
-    np.testing.assert_allclose(step[nodes][free[nodes]], dt * change[free[nodes]], rtol=0, atol=1e-9)
+    assert_first_order(rolled, result, scenario, x, v)
 
 
 def test_displacement_without_quasi_static_is_a_config_error():
