@@ -302,6 +302,12 @@ class FrameDataset(NumberedSamples):
                 raise ConfigError(f"config key 'graph.contact' must be false for Eulerian data ({source} holds "
                                   "fields on a fixed mesh: no world edges, thesis Table 4.2)")
             self.noise.check(spec, source)
+            if self.options.from_rest and (not spec.is_lagrangian or self.noise.position > 0 or
+                                           self.noise.velocity > 0):
+                raise ConfigError("config key 'graph.from_rest' needs Lagrangian data and no input noise (no state "
+                                  f"enters its graphs, so noise has nothing to undo: set noise.position and "
+                                  f"noise.velocity to 0); {source} holds {spec.describe()}, noise.position is "
+                                  f"{self.noise.position}, noise.velocity {self.noise.velocity}")
             if self.options.quasi_static and (not spec.is_lagrangian or self.noise.velocity > 0):
                 raise ConfigError("config key 'graph.quasi_static' needs Lagrangian data and 'noise.velocity' 0 "
                                   f"(free nodes have no velocity input); {source} holds {spec.describe()}, "
@@ -326,6 +332,11 @@ class FrameDataset(NumberedSamples):
         scenario, positions, velocities = self.scenarios[k], self.positions[k], self.velocities[k]
         pos, velocity = positions[t].copy(), velocities[t].copy()
         target = velocities[t + 1] - velocities[t]
+        if self.options.from_rest:  # free nodes at rest, without velocity; the target: x_{t+1} - X over dt
+            free = (scenario.node_type == NodeType.FREE)[:, None]
+            rest = scenario.rest_pos
+            return (np.where(free, rest, pos), np.where(free, 0.0, velocity),
+                    np.where(free, (positions[t + 1] - rest) / scenario.frame_dt, target))
         if self.options.quasi_static:
             free = (scenario.node_type == NodeType.FREE)[:, None]
             target = np.where(free, velocities[t + 1], target)

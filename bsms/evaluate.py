@@ -319,8 +319,8 @@ def _json_default(value):
     return str(value)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bsms.evaluate", description=__doc__.split("\n\n")[0])
+def main(argv=None, prog: str = "python -m bsms.evaluate") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", help="a run folder written by train.py (runs/<name>)")
     parser.add_argument("--compare", nargs="*", default=[], help="more run folders to put on the same chart")
     parser.add_argument("--split", default=None, help="dataset split (default: the run's evaluate.split)")

@@ -224,8 +224,8 @@ def _write_outputs(folder: Path, scene, predicted: np.ndarray, truth, frame_dt: 
                     frame_dt=frame_dt)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bsms.infer", description=__doc__.split("\n\n")[0])
+def main(argv=None, prog: str = "python -m bsms.infer") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", help="a run folder written by train.py (runs/<name>)")
     parser.add_argument("--mesh", action="append", required=True, help="mesh file (repeat for several bodies)")
     parser.add_argument("--scene", action="append", default=[], metavar="KEY=VALUE",

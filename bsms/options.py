@@ -55,6 +55,16 @@ class GraphOptions:
         frame, instead of 0; the output stays their velocity over the coming frame. The model
         then knows how far each node is from rest (not only the strain), which a body held in
         place (bonded, clamped) returns to.
+    from_rest: a learned solution operator for bodies held in place under a slow drive: free
+        nodes enter every graph at their rest positions X with no velocity input, so that a
+        frame's graph carries only the drive (the kinematic nodes where they are, with the
+        velocity of their coming step, and their contact edges to the rest shape), and the
+        model predicts each free node's displacement from rest at the next frame, as a velocity
+        over one frame: x_{t+1} = X + dt out. No state passes from one frame to the next, so a
+        rollout's error does not accumulate and input noise has nothing to undo. It holds where
+        the body's state is a function of the drive (elastic, quasi-static: inertia, ringing
+        and friction history beyond what the drive's velocity tells are not modelled).
+        Lagrangian data only; excludes ``quasi_static`` and training noise.
     """
 
     levels: int = 4
@@ -70,11 +80,15 @@ class GraphOptions:
     constants: list[str] = field(default_factory=list)
     quasi_static: bool = False
     displacement: bool = False
+    from_rest: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
         if self.displacement and not self.quasi_static:
             raise ConfigError(f"config key '{prefix}.displacement' anchors quasi-static learning to the rest shape; "
                               f"set '{prefix}.quasi_static: true' too, or '{prefix}.displacement: false'")
+        if self.from_rest and self.quasi_static:
+            raise ConfigError(f"config key '{prefix}.from_rest' predicts every frame from the rest shape and the "
+                              f"drive, '{prefix}.quasi_static' steps from the frame before; set one of them to false")
         if not 1 <= self.levels <= 16:
             raise ConfigError(f"config key '{prefix}.levels' must be from 1 to 16 (the mesh included), "
                               f"got {self.levels}")

@@ -59,8 +59,8 @@ def export(run_dir, out, which: str = "best") -> Path:
     return target
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bsms.pretrained", description=__doc__.splitlines()[0])
+def main(argv=None, prog: str = "python -m bsms.pretrained") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="the trained run folder")
     parser.add_argument("out", type=Path, help="the pretrained folder to write, e.g. pretrained/press2d")
     parser.add_argument("--which", default="best", choices=("best", "latest"), help="checkpoint (default best)")

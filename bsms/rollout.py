@@ -115,12 +115,21 @@ class _Track:
             velocity = velocity.copy()
             velocity[kinematic] = 0.0 if self.known is None else \
                 (self.known[t + 1][kinematic] - self.positions[t][kinematic]) / self.scenario.frame_dt
-        return self.scenario.frame(self.positions[t], velocity)
+        return self.scenario.frame(self._origin(t), velocity)
+
+    def _origin(self, t: int) -> np.ndarray:
+        """Where frame t's graph puts the nodes and its step starts from: frame t, or the rest
+        shape on free nodes of a model that predicts from rest (``graph.from_rest``)."""
+        if not self.scenario.options.from_rest:
+            return self.positions[t]
+        return np.where(self.scenario.kinematic[:, None], self.positions[t], self.scenario.rest_pos)
 
     def _base(self, t: int) -> np.ndarray:
         """The velocities frame t's step starts from: the state's, or 0 on free nodes of a
-        quasi-static model (``graph.quasi_static``: the output is their whole velocity)."""
-        if not self.scenario.options.quasi_static:
+        quasi-static model (``graph.quasi_static``: the output is their whole velocity) or of
+        one that predicts from rest (``graph.from_rest``)."""
+        options = self.scenario.options
+        if not (options.quasi_static or options.from_rest):
             return self.velocities[t]
         return np.where(self.scenario.kinematic[:, None], self.velocities[t], 0.0)
 
@@ -140,7 +149,9 @@ class _Track:
             self._advance_fields(t, change)
             return
         kinematic, dt = self.scenario.kinematic, self.scenario.frame_dt
-        position, velocity = integrate(self.positions[t], self._base(t), change, dt)
+        position, velocity = integrate(self._origin(t), self._base(t), change, dt)
+        if self.scenario.options.from_rest:  # the output was the displacement from rest: the frame's velocity
+            velocity = (position - self.positions[t]) / dt
         if self.known is not None:
             position[kinematic] = self.known[t + 1][kinematic]
             velocity[kinematic] = (self.known[t + 1][kinematic] - self.positions[t][kinematic]) / dt

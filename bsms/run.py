@@ -171,7 +171,9 @@ class TrainConfig:
     a learned simulator is used by (one-step error ranks checkpoints poorly where errors pile up).
     mirror: every training trajectory also enters reflected by x -> -x (:mod:`bsms.augment`;
     scenes symmetric under it: gravity along y, isotropic materials). trajectories: train on the
-    first this many training trajectories only (null: all of them), for learning curves."""
+    first this many training trajectories only (null: all of them), for learning curves.
+    tensorboard: also write the training log as TensorBoard event files to
+    ``<run>/tensorboard/`` (:mod:`bsms.training_log`; needs ``pip install "bsms[tensorboard]"``)."""
 
     steps: int = 10_000
     batch_size: int = 2
@@ -191,6 +193,7 @@ class TrainConfig:
     validation: Literal["one_step", "rollout"] = "one_step"
     mirror: bool = False
     trajectories: int | None = None
+    tensorboard: bool = False
 
     def validate(self, prefix: str) -> None:
         if self.trajectories is not None and self.trajectories < 1:
@@ -269,6 +272,10 @@ class Config:
     def validate(self, prefix: str = "") -> None:
         if not self.name or "/" in self.name or self.name.startswith("."):
             raise ConfigError(f"config key 'name' must be a run folder name (no '/'), got {self.name!r}")
+        if self.graph.from_rest and self.train.unroll > 1:
+            raise ConfigError("config key 'train.unroll' must be 1 with 'graph.from_rest': every frame is predicted "
+                              f"from the rest shape and the drive alone, so unrolled steps see the same inputs as "
+                              f"single steps; got {self.train.unroll}")
 
     @property
     def run_dir(self) -> Path:

@@ -2,7 +2,8 @@
 describes.
 
 The run folder (:mod:`bsms.run`) gains ``metrics.csv`` (step, loss, lr, seconds, samples_per_s,
-valid_rmse; valid_vs_rest with rollout validation) and ``checkpoints/{latest,best}.pt``.
+valid_rmse; valid_vs_rest with rollout validation; and TensorBoard event files with
+``train.tensorboard``: :mod:`bsms.training_log`) and ``checkpoints/{latest,best}.pt``.
 Checkpoints hold the model with its normalisers, the optimiser, the scheduler, the step and the
 RNG states; they are written atomically and read with ``weights_only=True``. Ctrl-C (SIGINT)
 stops training after the step under way, with ``latest.pt`` saved at that step; a second Ctrl-C
@@ -21,7 +22,6 @@ validation RMSE stays one-step.
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 import random
@@ -49,21 +49,19 @@ from bsms.run import (
     split_files,
     write_run_files,
 )
+from bsms.training_log import METRICS_FIELDS, TrainingLog, require_tensorboard
 from bsms.unroll import UnrollBatch, UnrollSamples, collate, unrolled_loss
 from bsms.validation import one_step_rmse, rollout_scores
-from datagen.atomic import atomic_path
 from datagen.dataset import load as load_trajectory
 
 __all__ = ["Trainer", "TrainingDiverged", "lr_factor", "METRICS_FIELDS"]
 
-METRICS_FIELDS = ("step", "loss", "lr", "seconds", "samples_per_s", "valid_rmse", "valid_vs_rest")
-
 # These may change when a run is resumed; anything else must match the run's saved config.
 _OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.workers", "dataset.generate",
-                "evaluate.batch"}
+                "evaluate.batch", "train.tensorboard"}
 # Keys added after runs were saved, with the value that keeps what those runs did.
 _ADDED = {"dataset.kind": "mpm", "graph.contact_distance": None, "train.unroll": 1, "train.unroll_gradient": "last",
-          "train.unroll_warmup": 0}
+          "train.unroll_warmup": 0, "graph.displacement": False, "graph.from_rest": False, "train.trajectories": None}
 
 
 def _flat(data: dict, prefix: str = "") -> dict:
@@ -165,6 +163,8 @@ class Trainer:
         self.run_dir = config.run_dir
         self.latest, self.best_path = checkpoint_path(self.run_dir, "latest"), checkpoint_path(self.run_dir, "best")
         self._check_run_folder(resume)
+        if config.train.tensorboard and self.rank == 0:
+            require_tensorboard()  # before anything is written
         progress = config.train.progress and self.rank == 0
         self.dataset_folder = Path(self._dataset_folder(dataset_folder, base, progress))
         cache = self.dataset_folder / "hierarchies"
@@ -196,8 +196,8 @@ class Trainer:
             self._restore(load_checkpoint(self.latest))
         elif self.rank == 0:
             write_run_files(config, self.dataset_folder)
-            with atomic_path(self.run_dir / "metrics.csv") as tmp:
-                tmp.write_text(",".join(METRICS_FIELDS) + "\n")
+        self.log = TrainingLog(self.run_dir, config.train.tensorboard, self.step if resume else None) \
+            if self.rank == 0 else None
 
     # -- setup
     def _train_files(self) -> list[Path]:
@@ -283,19 +283,6 @@ class Trainer:
         self.step, self.best_valid = int(checkpoint["step"]), float(checkpoint["best_valid"])
         self.seconds = float(checkpoint["seconds"])
         _set_rng_state(checkpoint["rng"])
-        if self.rank == 0:
-            self._truncate_metrics()
-
-    def _truncate_metrics(self) -> None:
-        path = self.run_dir / "metrics.csv"
-        rows = []
-        if path.is_file():
-            with open(path, newline="") as fh:
-                rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= self.step]
-        with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, METRICS_FIELDS, lineterminator="\n")
-            writer.writeheader()
-            writer.writerows(rows)
 
     # -- checkpoints
     def state(self) -> dict:
@@ -438,15 +425,14 @@ class Trainer:
         return rmse
 
     def _log(self, losses: list[float], since: float, rmse: float | None) -> None:
-        """Append a row to metrics.csv: mean loss, lr, time and throughput over the steps since ``since``."""
+        """Log a row (metrics.csv, TensorBoard): mean loss, lr, time and throughput over the steps since ``since``."""
         elapsed = time.perf_counter() - since
         row = {"step": self.step, "loss": f"{np.mean(losses):.6g}", "lr": f"{self.scheduler.get_last_lr()[0]:.6g}",
                "seconds": f"{self.seconds:.3f}",
                "samples_per_s": f"{len(losses) * self.config.train.batch_size / max(elapsed, 1e-9):.3f}",
                "valid_rmse": "" if rmse is None else f"{rmse:.6g}",
                "valid_vs_rest": "" if rmse is None or self.valid_vs_rest is None else f"{self.valid_vs_rest:.6g}"}
-        with open(self.run_dir / "metrics.csv", "a", newline="") as fh:
-            csv.DictWriter(fh, METRICS_FIELDS, lineterminator="\n").writerow(row)
+        self.log.write(row)
 
     def _stop_requested(self, stop: _StopRequest) -> bool:
         if self.world == 1:
@@ -489,5 +475,7 @@ class Trainer:
                     self.save(self.latest)
                 if interrupted:
                     break
+        if self.log is not None:
+            self.log.flush()
         return {"steps": self.step, "loss": last_loss, "best_valid_rmse": self.best_valid, "seconds": self.seconds,
                 "interrupted": interrupted, "signal": request.signal_name}

@@ -131,11 +131,11 @@ def generate(config, *, out="data", splits=None, shard: tuple[int, int] = (0, 1)
     return summary
 
 
-def main(argv=None) -> int:
+def main(argv=None, prog: str = "python -m datagen") -> int:
     import argparse
     import sys
 
-    parser = argparse.ArgumentParser(prog="python -m datagen", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     parser.add_argument("config", help="dataset config YAML, e.g. configs/datasets/disks_quick.yaml")
     parser.add_argument("--split", action="append", choices=SPLITS, help="only this split (repeatable)")
     parser.add_argument("--out", default="data", help="root folder of datasets (default: data)")

@@ -11,8 +11,8 @@ from datagen.config import ConfigError
 from datagen.dataset import DatasetError
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bsms.datasets", description="Convert benchmark datasets into "
+def main(argv=None, prog: str = "python -m bsms.datasets") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description="Convert benchmark datasets into "
                                      "the project's trajectory files (resumable, atomic).")
     sub = parser.add_subparsers(dest="command", required=True)
     conv = sub.add_parser("convert", help="convert a source dataset folder")
