@@ -51,7 +51,7 @@ SOLVER_DEFAULTS = {
     "reference": "eulerian", "epsilon": 0.01, "fraction": 0.01, "contact_margin": 1.0, "max_substeps": 100_000,
     "fbar": False,
 }
-# Rough particle-steps per second of one CPU core (README, mpm_throughput.py), only for the time
+# Rough particle-steps per second of one CPU core (docs/solver.md, mpm_throughput.py), only for the time
 # an absurd configuration would take, stated when it is refused.
 _NOMINAL_RATE = {2: 5e5, 3: 2e5}
 OUTPUT_DEFAULTS = {"frames": None, "frame_interval": None, "step_diagnostics": False}

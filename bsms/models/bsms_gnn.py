@@ -39,7 +39,8 @@ class BSMSGNN(nn.Module):
     """Bi-stride multi-scale graph network.
 
     Args:
-        node_in, node_out: widths of the (normalised) node inputs and outputs.
+        node_in: width of the (normalised) node inputs.
+        node_out: width of the outputs.
         edge_feature_dims: width of the edge features of each edge set (mesh, contact, ...),
             the same at every level.
         n_levels: levels used; a hierarchy with fewer levels uses its own depth (the bottom

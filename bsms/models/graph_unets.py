@@ -123,7 +123,8 @@ class GraphUNets(nn.Module):
     """Graph U-Nets with message-passing blocks and sparse coarse graphs (see the module doc).
 
     Args:
-        node_in, node_out: widths of the (normalised) node inputs and outputs.
+        node_in: width of the (normalised) node inputs.
+        node_out: width of the outputs.
         edge_feature_dims: widths of the level-0 edge sets: the mesh (2 (d + 1): material and
             world offsets and norms; d + 1: material only) first, then contacts (d + 1: world).
         n_levels: levels, the mesh included (n_levels - 1 gPools).

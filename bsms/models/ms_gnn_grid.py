@@ -209,7 +209,8 @@ class MSGNNGrid(nn.Module):
     """Multi-scale GNN on the mesh and regular grids built from world positions.
 
     Args:
-        node_in, node_out: widths of the (normalised) node inputs and outputs.
+        node_in: width of the (normalised) node inputs.
+        node_out: width of the outputs.
         edge_feature_dims: width of the features of each mesh-level edge set (mesh, contact, ...).
         passes: message passes per level, the mesh first (Table 4.3: [4, 2, 2, 4]); its length
             is the number of levels.

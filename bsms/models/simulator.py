@@ -63,7 +63,8 @@ class LearnedSimulator(nn.Module):
         n_levels: levels the core uses (1 for meshgraphnets).
         contact: whether graphs carry contact edges.
         n_constants: per-node scene constants appended to the node inputs.
-        latent, n_passes: width of the latents; message passes of meshgraphnets.
+        latent: width of the latents.
+        n_passes: message passes of meshgraphnets.
         hidden_layers: hidden layers of every MLP.
         max_accumulations: batches after which the normalisers freeze.
         core_options: options of the core beyond these (``transition`` of bsms_gnn, ...).
