@@ -2,10 +2,14 @@
 reader, across a resume."""
 
 import csv
+import os
 import shutil
+import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+import yaml
 from conftest import tiny_run_config
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -13,6 +17,8 @@ from bsms.config import ConfigError
 from bsms.run import load_config, prepare_dataset
 from bsms.trainer import Trainer
 from bsms.training_log import TENSORBOARD_TAGS
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _scalars(folder) -> dict[str, list[tuple[int, float]]]:
@@ -67,3 +73,19 @@ def test_asking_for_tensorboard_without_it_names_the_extra(tiny_dataset, tmp_pat
                                 "installed: pip install \"bsms[tensorboard]\" (or pip install tensorboard), or set "
                                 "train.tensorboard=false")
     assert not (tmp_path / "tiny").exists(), "nothing is written before the error"
+
+
+def test_train_py_with_the_tensorboard_override_writes_events_tensorboard_reads(tiny_dataset, tmp_path):
+    """The documented command form: ``python train.py CONFIG train.tensorboard=true``."""
+    config = tmp_path / "run.yaml"
+    config.write_text(yaml.safe_dump(tiny_run_config(tiny_dataset, tmp_path / "runs", train={
+        "steps": 4, "log_every": 2, "valid_every": 4, "checkpoint_every": 4}, evaluate={"enabled": False})))
+    result = subprocess.run([sys.executable, str(ROOT / "train.py"), str(config), "train.tensorboard=true", "--quiet"],
+                            capture_output=True, text=True, cwd=tmp_path, timeout=300,
+                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert result.returncode == 0, result.stderr
+    scalars = _scalars(tmp_path / "runs" / "tiny" / "tensorboard")
+    rows = _rows(tmp_path / "runs" / "tiny")
+    assert [s for s, _ in scalars["train/loss"]] == [2, 4]
+    assert [v for _, v in scalars["train/loss"]] == pytest.approx([float(r["loss"]) for r in rows], rel=1e-6)
+    assert [s for s, _ in scalars["valid/rmse"]] == [4]
