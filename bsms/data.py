@@ -23,6 +23,7 @@ from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, ty
 from bsms.graph import bistride_levels
 from bsms.graph.frames import SubHierarchy
 from bsms.graph.obstacles import ObstacleReach, Subdivision, facet_edges, subdivide_obstacles
+from bsms.graph.penetration import Penetration
 from bsms.level_graph import FrameArrays, LevelGraph, level_graph
 from bsms.options import GraphOptions, NoiseOptions, saved_graph_options
 from datagen.dataset import DatasetError
@@ -84,6 +85,16 @@ def _with_obstacles(rest, edges, node_type, body_id, obstacle_nodes, obstacle_fa
             np.concatenate([body_id, np.full(m, body_id.max() + 1, np.int64)]), geometry)
 
 
+def _penetration(options: GraphOptions, rest, geometry: Subdivision | None, n_body: int, source: str):
+    """The scenario's :class:`Penetration` (``graph.penetration``), None without obstacle geometry."""
+    if not options.penetration or geometry is None:
+        return None
+    try:
+        return Penetration(rest, geometry.facets + n_body, n_body)
+    except ValueError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
 @dataclass
 class Scenario:
     """The fixed part of the graphs of one trajectory (or of one mesh placed in a scene).
@@ -117,6 +128,7 @@ class Scenario:
     reach: ObstacleReach = field(repr=False)
     type_codes: np.ndarray | None = None
     obstacle_geometry: Subdivision | None = field(default=None, repr=False)
+    penetration: Penetration | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, mesh, options: GraphOptions, *, frame_dt: float, node_type=None, body_id=None,
@@ -147,6 +159,7 @@ class Scenario:
             options=options, levels=SubHierarchy(hierarchy, n_body),
             reach=ObstacleReach(n_body, body_id, radius, reach, options.self_contact, edges),
             type_codes=None if type_codes is None else np.asarray(type_codes, np.int64), obstacle_geometry=geometry,
+            penetration=_penetration(options, rest, geometry, n_body, source),
         )
 
     @classmethod
@@ -222,6 +235,11 @@ class Scenario:
             arrays["type_code"] = self.type_codes[nodes]
         if len(self.constants):
             arrays["constants"] = np.broadcast_to(self.constants, (len(nodes), len(self.constants)))
+        if self.options.penetration:
+            pos = np.asarray(pos, np.float64)
+            coming = pos + self.frame_dt * np.asarray(velocity, np.float64)  # kinematic rows: their coming step
+            arrays["penetration"] = self.penetration(pos, coming, self.node_type == NodeType.FREE)[nodes] \
+                if self.penetration is not None else np.zeros((len(nodes), pos.shape[1]))
         return FrameArrays(arrays, levels, contacts if self.options.contact else None)
 
     def graph(self, pos: np.ndarray, velocity: np.ndarray, target: np.ndarray | None = None,

@@ -65,6 +65,12 @@ class GraphOptions:
         the body's state is a function of the drive (elastic, quasi-static: inertia, ringing
         and friction history beyond what the drive's velocity tells are not modelled).
         Lagrangian data only; excludes ``quasi_static`` and training noise.
+    penetration: every node also gets, as an input, how far the moving obstacles reach into
+        the body at the coming frame: for a free node inside an obstacle's closed outline (not
+        the container of walls around the body) where the obstacle will be, the vector to the
+        outline's nearest point, else 0 (:mod:`bsms.graph.penetration`) -- the kinematic
+        boundary condition an indenter imposes, which the network would otherwise have to
+        infer from offsets to the obstacle's surface nodes. 2D scenes.
     """
 
     levels: int = 4
@@ -81,6 +87,7 @@ class GraphOptions:
     quasi_static: bool = False
     displacement: bool = False
     from_rest: bool = False
+    penetration: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
         if self.displacement and not self.quasi_static:

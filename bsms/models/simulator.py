@@ -63,6 +63,8 @@ class LearnedSimulator(nn.Module):
         n_levels: levels the core uses (1 for meshgraphnets).
         contact: whether graphs carry contact edges.
         n_constants: per-node scene constants appended to the node inputs.
+        penetration: the graphs carry ``penetration`` (N, d), appended to the node inputs
+            (``graph.penetration``, :mod:`bsms.graph.penetration`).
         latent: width of the latents.
         n_passes: message passes of meshgraphnets.
         hidden_layers: hidden layers of every MLP.
@@ -73,7 +75,7 @@ class LearnedSimulator(nn.Module):
 
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
-                 core_options: dict | None = None, fields: FieldSpec | None = None):
+                 core_options: dict | None = None, fields: FieldSpec | None = None, penetration: bool = False):
         super().__init__()
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
@@ -82,7 +84,8 @@ class LearnedSimulator(nn.Module):
             raise ValueError(f"the field spec ({spec.describe()}) does not fit dim={dim}, contact={contact}")
         self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
-        node_in = spec.node_in + spec.n_types + n_constants
+        self.penetration = penetration
+        node_in = spec.node_in + spec.n_types + n_constants + (dim if penetration else 0)
         edge_dims = [spec.mesh_edge_dim] + ([spec.contact_edge_dim] if contact else [])
         self.core = build_core(core, node_in, spec.node_out, edge_dims, n_levels=n_levels, latent=latent,
                                n_passes=n_passes, hidden_layers=hidden_layers, options=dict(core_options or {}))
@@ -107,6 +110,11 @@ class LearnedSimulator(nn.Module):
         parts = [state, nn.functional.one_hot(codes, spec.n_types).to(state.dtype)]
         if "constants" in graph:
             parts.append(graph.constants)
+        if self.penetration:
+            if "penetration" not in graph:
+                raise ValueError("the model reads how far obstacles reach into the body ('penetration', "
+                                 "graph.penetration), which this graph lacks; build it with graph.penetration: true")
+            parts.append(graph.penetration)
         return torch.cat(parts, dim=-1)
 
     def _level(self, graph: LevelGraph, l: int, accumulate: bool) -> Level:
