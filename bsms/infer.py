@@ -195,7 +195,8 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     groups = [[p] for p in paths] if separately else [paths]
     placed = [_place(group, config, dconfig, overrides, steps) for group in groups]
     results = rollouts(model, [p.scenario for p in placed], [p.x0 for p in placed], [p.v0 for p in placed],
-                       [p.steps for p in placed], [p.known for p in placed], device=device, progress=progress)
+                       [p.steps for p in placed], [p.known for p in placed], device=device, progress=progress,
+                       frames_per_call=max(p.steps for p in placed))  # independent frames (graph.from_rest)
     folders = _subfolders(folder, paths) if separately else [folder]
     summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound)
                  for p, result, where in zip(placed, results, folders, strict=True)]

@@ -33,7 +33,8 @@ def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames
                  for s, w, n, t in zip(scenarios, truths, frames, trajectories, strict=True)]
         initial = [s.full(initial_velocity(spec, t, w)[None], 0.0)[0]
                    for s, t, w in zip(scenarios, trajectories, truths, strict=True)]
-        results = rollouts(model, scenarios, [k[0] for k in known], initial, frames, known, device=device)
+        results = rollouts(model, scenarios, [k[0] for k in known], initial, frames, known, device=device,
+                           frames_per_call=max(frames))  # independent frames (graph.from_rest): all at once
     else:
         truths = [eulerian_state(spec, t)[: n + 1] for t, n in zip(trajectories, frames, strict=True)]
         results = rollouts(model, scenarios, [s.rest_pos for s in scenarios],

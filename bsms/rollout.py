@@ -211,17 +211,61 @@ def _changes(model, tracks: list[_Track], t: int, device: torch.device, precisio
     return out
 
 
+def _independent(tracks: list[_Track]) -> bool:
+    """Whether every frame of these rollouts can be predicted at once: a model that predicts each
+    frame from the rest shape and the drive (``graph.from_rest``), with the drive known ahead."""
+    return all(k.states is None and k.scenario.options.from_rest and (k.known is not None or
+                                                                     not k.scenario.kinematic.any())
+               for k in tracks)
+
+
+def _all_frames(model, tracks: list[_Track], device: torch.device, precision: str, frames_per_call: int,
+                progress: bool) -> None:
+    """The rollouts of independent frames (:func:`_independent`): up to ``frames_per_call`` frames
+    of every track joined into one model call, the frames then advanced in order. Each frame's
+    time is its share of its call."""
+    for k in tracks:  # the drive of every frame, before any is predicted
+        if k.known is not None:
+            k.positions[1:, k.scenario.kinematic] = k.known[1: k.steps + 1][:, k.scenario.kinematic]
+        else:
+            k.positions[1:, k.scenario.kinematic] = k.positions[0][k.scenario.kinematic]
+    longest = max(k.steps for k in tracks)
+    for t0 in tqdm(range(0, longest, frames_per_call), desc="rollout", unit="call", disable=not progress):
+        jobs = [(k, t) for t in range(t0, min(t0 + frames_per_call, longest)) for k in tracks if k.running(t)]
+        if not jobs:
+            break
+        start = time.perf_counter()
+        frames = [k.frame(t) for k, t in jobs]
+        change = model.velocity_change(level_graph(frames).to(device), precision=precision).double().cpu().numpy()
+        _synchronize(device)
+        share = (time.perf_counter() - start) / len(jobs)
+        offset = 0
+        for (k, t), frame in zip(jobs, frames, strict=True):
+            full = np.zeros((len(k.positions[t]), change.shape[1]))
+            full[frame.nodes["scenario_nodes"]] = change[offset: offset + frame.n_nodes]
+            offset += frame.n_nodes
+            k.graph_nodes.append([len(level.nodes) for level in frame.levels])
+            if k.running(t):  # an earlier frame may have gone non-finite
+                k.seconds.append(share)
+                k.advance(t, full)
+
+
 @torch.no_grad()
 def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_velocities: list, steps,
              known_positions: list | None = None, device="cpu", progress: bool = False,
              warmup: int = 1, precision: str = "auto", initial_states: list | None = None,
-             known_states: list | None = None) -> list[Rollout]:
+             known_states: list | None = None, frames_per_call: int = 1) -> list[Rollout]:
     """Roll ``model`` out on several scenarios at once: every step is one model call on their
     graphs joined into one (:func:`~bsms.level_graph.level_graph`), and each rollout equals its
     rollout alone to float32 round-off. Arguments as :func:`rollout`, one per scenario
     (``steps``: an int or one per scenario; ``known_positions``: None, or one array or None per
     scenario). A rollout that ends (its steps, or a non-finite state) leaves the batch; the
     others go on. Each rollout's ``step_seconds`` are its share of the batch's steps.
+
+    frames_per_call: for a model whose frames do not depend on each other (``graph.from_rest``,
+    with the drive known: ``known_positions`` or no kinematic nodes), this many frames of every
+    scenario go into one model call (a whole known drive predicted in a few calls); each
+    frame's time is its share of its call. Other models step one frame per call whatever it says.
 
     A model of Eulerian data (``model.spec``, :mod:`bsms.fields`) needs ``initial_states``: one
     (N, k) state of the spec's fields per scenario; ``known_states``: None, or one (>= steps + 1,
@@ -246,10 +290,15 @@ def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_
     tracks = [_track(*args, spec, s0, ks) for *args, s0, ks in zip(
         scenarios, initial_positions, initial_velocities, steps, known_positions, initial_states, known_states,
         strict=True)]
+    if frames_per_call < 1:
+        raise ValueError(f"frames_per_call must be >= 1, got {frames_per_call}")
     for _ in range(warmup):
         _changes(model, tracks, 0, device, precision)
         for k in tracks:
             k.graph_nodes.clear()
+    if frames_per_call > 1 and _independent(tracks):
+        _all_frames(model, tracks, device, precision, frames_per_call, progress)
+        return [k.result() for k in tracks]
     for t in tqdm(range(max(steps)), desc="rollout", unit="step", disable=not progress):
         running = [k for k in tracks if k.running(t)]
         if not running:
@@ -267,7 +316,7 @@ def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_
 def rollout(model, scenario: Scenario, initial_positions: np.ndarray, initial_velocity: np.ndarray, steps: int,
             known_positions: np.ndarray | None = None, device="cpu", progress: bool = False,
             warmup: int = 1, precision: str = "auto", initial_state: np.ndarray | None = None,
-            known_state: np.ndarray | None = None) -> Rollout:
+            known_state: np.ndarray | None = None, frames_per_call: int = 1) -> Rollout:
     """Roll ``model`` out for ``steps`` steps from frame 0.
 
     initial_positions, initial_velocity: (N, d) of all scenario nodes at frame 0.
@@ -279,10 +328,13 @@ def rollout(model, scenario: Scenario, initial_positions: np.ndarray, initial_ve
         it), ``bf16`` or ``f32`` (:mod:`bsms.models.precision`).
     initial_state, known_state: Eulerian data: the (N, k) state of frame 0 and the (>= steps + 1,
         N, k) states whose rows of prescribed nodes give their fields (:func:`rollouts`).
+    frames_per_call: frames predicted in one model call where they do not depend on each other
+        (``graph.from_rest`` with the drive known; :func:`rollouts`).
     """
     return rollouts(model, [scenario], [initial_positions], [initial_velocity], [steps], [known_positions],
                     device=device, progress=progress, warmup=warmup, precision=precision,
-                    initial_states=None if initial_state is None else [initial_state], known_states=[known_state])[0]
+                    initial_states=None if initial_state is None else [initial_state], known_states=[known_state],
+                    frames_per_call=frames_per_call)[0]
 
 
 def body_size(rest_positions: np.ndarray) -> float:

@@ -9,6 +9,7 @@ from test_unroll import Stub
 
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
+from bsms.models.simulator import LearnedSimulator
 from bsms.rollout import rollout
 from bsms.run import load_config, prepare_dataset, split_files
 from bsms.trainer import Trainer
@@ -122,3 +123,33 @@ def test_from_rest_with_unrolled_training_is_a_config_error(tiny_dataset, tmp_pa
     assert str(error.value) == ("config key 'train.unroll' must be 1 with 'graph.from_rest': every frame is predicted "
                                 "from the rest shape and the drive alone, so unrolled steps see the same inputs as "
                                 "single steps; got 3")
+
+
+def test_all_frames_in_one_call_equal_the_frame_by_frame_rollout(frames):
+    """Frames that do not depend on each other go into one model call (frames_per_call); the
+    rollout is the same as one call per frame, to float32 round-off."""
+    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.velocities[0]
+    steps = len(x) - 1
+    torch.manual_seed(0)
+    model = LearnedSimulator("bsms_gnn", 2, n_levels=3, contact=True, latent=16)
+    model.node_normalizer.accumulate(torch.randn(50, model.node_normalizer.total.shape[-1]))
+    model.output_normalizer.accumulate(torch.randn(50, 2) * 0.05)
+    calls = []
+    model.core.register_forward_hook(lambda module, args, out: calls.append(out.shape[0]))
+    one = rollout(model, scenario, x[0], v[0], steps, known_positions=x, warmup=0, precision="f32")
+    assert len(calls) == steps
+    calls.clear()
+    whole = rollout(model, scenario, x[0], v[0], steps, known_positions=x, warmup=0, precision="f32",
+                    frames_per_call=steps)
+    assert len(calls) == 1 and calls[0] == sum(one.graph_nodes[:, 0])
+    np.testing.assert_allclose(whole.positions, one.positions, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(whole.velocities, one.velocities, rtol=0, atol=1e-4)
+    assert len(whole.step_seconds) == steps and np.array_equal(whole.graph_nodes, one.graph_nodes)
+
+
+def test_frames_that_depend_on_each_other_step_one_by_one(folder):
+    dependent = FrameDataset(split_files(folder, "train"), GraphOptions(levels=3, quasi_static=True))
+    scenario, x, v = dependent.scenarios[0], dependent.positions[0], dependent.velocities[0]
+    model = _stub(lambda model, graph: torch.zeros_like(graph.pos))
+    rollout(model, scenario, x[0], v[0], 4, known_positions=x, warmup=0, precision="f32", frames_per_call=4)
+    assert len(model.seen) == 4
