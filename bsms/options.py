@@ -70,7 +70,7 @@ class GraphOptions:
         the container of walls around the body) where the obstacle will be, the vector to the
         outline's nearest point, else 0 (:mod:`bsms.graph.penetration`) -- the kinematic
         boundary condition an indenter imposes, which the network would otherwise have to
-        infer from offsets to the obstacle's surface nodes. 2D scenes.
+        infer from offsets to the obstacle's surface nodes. 2D (segment outlines) and 3D (triangles).
     """
 
     levels: int = 4

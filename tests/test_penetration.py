@@ -7,7 +7,13 @@ from conftest import tiny_run_config
 
 from bsms.config import ConfigError
 from bsms.data import GraphOptions, NodeType, Scenario
-from bsms.graph.penetration import Penetration, closest_points, winding_numbers
+from bsms.graph.penetration import (
+    Penetration,
+    closest_points,
+    closest_points_3d,
+    solid_winding_numbers,
+    winding_numbers,
+)
 from bsms.models.simulator import LearnedSimulator
 from bsms.run import load_config, prepare_dataset
 from bsms.trainer import Trainer
@@ -89,13 +95,52 @@ def test_a_scenario_frame_carries_the_penetration_of_the_coming_frame():
     assert (depth > 0).sum() >= 2 and depth.max() <= 0.1 + 1e-12  # never more than the punch's half width
 
 
-def test_three_dimensional_scenes_are_a_config_error():
-    ball = shapes.sphere(0.5, 0.25)
-    box = np.array([[-1, -1, -1], [2, -1, -1], [2, 2, -1]], float)
-    with pytest.raises(ConfigError, match=r"graph.penetration is built for 2D scenes \(closed segment outlines\); "
-                                          r"this scene is 3D: set graph.penetration: false"):
-        Scenario.build(ball, GraphOptions(levels=2, penetration=True), frame_dt=0.1, obstacle_nodes=box,
-                       obstacle_facets=np.array([[0, 1, 2]]))
+CUBE_FACES = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+                       [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])  # outward
+
+
+def cube(low, high):
+    (x0, y0, z0), (x1, y1, z1) = low, high
+    return np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0],
+                     [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]], float)
+
+
+def test_solid_winding_numbers_and_closest_points_in_3d():
+    corners = cube((0, 0, 0), (1, 1, 1))
+    a, b, c = (corners[CUBE_FACES[:, i]] for i in range(3))
+    points = np.array([[0.5, 0.5, 0.5], [0.9, 0.1, 0.2], [1.5, 0.5, 0.5], [0.5, 0.5, -0.01]])
+    np.testing.assert_allclose(np.abs(solid_winding_numbers(points, a, b, c)), [1, 1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(solid_winding_numbers(points, a, c, b), -solid_winding_numbers(points, a, b, c),
+                               atol=1e-12)
+    near = closest_points_3d(np.array([[0.5, 0.5, 0.3], [0.9, 0.1, 0.5], [2.0, 2.0, 2.0], [0.5, 0.5, 1.4]]), a, b, c)
+    np.testing.assert_allclose(near, [[0.5, 0.5, 0.0], [1.0, 0.1, 0.5], [1, 1, 1], [0.5, 0.5, 1.0]], atol=1e-15)
+
+
+def test_a_3d_punch_counts_and_its_container_does_not():
+    body = shapes.box((1.0, 1.0, 1.0), 0.25)
+    nodes = body.nodes - body.nodes.min(0)
+    n_body = len(nodes)
+    box, punch = cube((-1, -1, -1), (2, 2, 2)), cube((0.3, 0.3, 0.9), (0.7, 0.7, 1.3))
+    rest = np.concatenate([nodes, box, punch])
+    facets = np.concatenate([CUBE_FACES + n_body, CUBE_FACES + n_body + 8])
+    penetration = Penetration(rest, facets, n_body)
+    assert len(penetration.outlines) == 1
+    coming = rest.copy()
+    coming[n_body + 8:] += [0.0, 0.0, -0.2]  # underside at z = 0.7
+    out = penetration(rest, coming, np.arange(len(rest)) < n_body)
+    x, y, z = nodes.T
+    inside = (x > 0.3) & (x < 0.7) & (y > 0.3) & (y < 0.7) & (z > 0.7)
+    assert inside.sum() >= 1 and not out[n_body:].any() and not out[:n_body][~inside].any()
+    gaps = np.stack([x - 0.3, 0.7 - x, y - 0.3, 0.7 - y, z - 0.7, 1.1 - z], 1)[inside]
+    np.testing.assert_allclose(np.linalg.norm(out[:n_body][inside], axis=1), gaps.min(1), rtol=0, atol=1e-14)
+
+
+def test_facets_that_do_not_fit_the_dimension_are_a_config_error():
+    body, rest, facets, n_body, _ = _scene()
+    with pytest.raises(ConfigError, match=r"graph.penetration needs closed obstacle outlines of 2-node facets in a "
+                                          r"2D scene \(segments in 2D, triangles in 3D\), got facets of 3 nodes"):
+        Scenario.build(body.__class__(rest[:n_body], body.cells), GraphOptions(levels=2, penetration=True),
+                       frame_dt=0.1, obstacle_nodes=rest[n_body:], obstacle_facets=np.array([[0, 1, 2]]))
 
 
 def test_the_model_reads_it_and_says_when_it_is_missing():

@@ -9,9 +9,9 @@ at the coming frame (winding number), and if so the vector to the nearest point 
 -- the displacement that would put the node back on the obstacle's surface, the kinematic
 boundary condition of contact. Nodes outside every obstacle get 0.
 
-Outlines are the connected components of the (subdivided) obstacle facets; a component is a
-container when it encloses most of the body's rest nodes (the box's walls), and it is then
-left out: a body is inside its container by design. 2D (segment outlines) only.
+Outlines are the connected components of the (subdivided) obstacle facets -- segments in 2D,
+triangles in 3D; a component is a container when it encloses most of the body's rest nodes
+(the box's walls), and it is then left out: a body is inside its container by design.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
-__all__ = ["Penetration", "winding_numbers", "closest_points"]
+__all__ = ["Penetration", "winding_numbers", "closest_points", "solid_winding_numbers", "closest_points_3d"]
 
 
 def winding_numbers(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -44,41 +44,88 @@ def closest_points(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarr
     return candidates[np.arange(len(points)), nearest]
 
 
+def solid_winding_numbers(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(P,) winding number of the closed surface of triangles (a, b, c)[s] (S, 3) around each of
+    ``points`` (P, 3): the sum of the signed solid angles the triangles subtend (van Oosterom and
+    Strackee's formula), over 4 pi (+-1 inside a closed surface, 0 outside)."""
+    u, v, w = (x[None, :, :] - points[:, None, :] for x in (a, b, c))
+    lu, lv, lw = (np.linalg.norm(x, axis=-1) for x in (u, v, w))
+    triple = (u * np.cross(v, w)).sum(-1)
+    below = lu * lv * lw + (u * v).sum(-1) * lw + (v * w).sum(-1) * lu + (w * u).sum(-1) * lv
+    return 2 * np.arctan2(triple, below).sum(1) / (4 * np.pi)
+
+
+def closest_points_3d(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(P, 3) the point of the triangles (a, b, c)[s] (S, 3) nearest each of ``points`` (P, 3): the
+    nearest of each triangle's interior projection (where it falls inside) and of its edges."""
+    p = points[:, None, :]
+    normal = np.cross(b - a, c - a)
+    unit = normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), np.finfo(float).tiny)
+    projected = p - ((p - a[None]) * unit[None]).sum(-1, keepdims=True) * unit[None]  # (P, S, 3)
+    inside = np.ones(projected.shape[:2], bool)
+    for x, y in ((a, b), (b, c), (c, a)):  # on the inner side of every edge
+        inside &= (np.cross(y - x, projected - x[None]) * normal[None]).sum(-1) >= 0
+    candidates, distances = [], []
+    for x, y in ((a, b), (b, c), (c, a)):
+        edge = y - x
+        t = np.clip(((p - x[None]) * edge[None]).sum(-1) / np.maximum((edge * edge).sum(-1), np.finfo(float).tiny),
+                    0.0, 1.0)
+        on_edge = x[None] + t[..., None] * edge[None]
+        candidates.append(on_edge)
+        distances.append(((on_edge - p) ** 2).sum(-1))
+    candidates.append(projected)
+    distances.append(np.where(inside, ((projected - p) ** 2).sum(-1), np.inf))
+    candidates, distances = np.stack(candidates, 2), np.stack(distances, 2)  # (P, S, 4, 3), (P, S, 4)
+    flat = distances.reshape(len(points), -1).argmin(1)
+    return candidates.reshape(len(points), -1, 3)[np.arange(len(points)), flat]
+
+
+def _winding(points, corners):
+    return winding_numbers(points, *corners) if len(corners) == 2 else solid_winding_numbers(points, *corners)
+
+
+def _closest(points, corners):
+    return closest_points(points, *corners) if len(corners) == 2 else closest_points_3d(points, *corners)
+
+
 class Penetration:
     """The penetration input of one scenario.
 
-    rest: (N, 2) rest positions of all scenario nodes; facets: (F, 2) obstacle segments in
-    scenario node indices; n_body: body node count (nodes before it are the body's)."""
+    rest: (N, d) rest positions of all scenario nodes; facets: (F, d) obstacle segments (2D) or
+    triangles (3D) in scenario node indices; n_body: body node count (nodes before it are the
+    body's)."""
 
     def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int):
-        if rest.shape[1] != 2:
-            raise ValueError(f"graph.penetration is built for 2D scenes (closed segment outlines); this scene is "
-                             f"{rest.shape[1]}D: set graph.penetration: false")
-        facets = np.asarray(facets, np.int64).reshape(-1, 2)
+        dim = rest.shape[1]
+        facets = np.asarray(facets, np.int64).reshape(len(facets), -1)
+        if dim not in (2, 3) or (len(facets) and facets.shape[1] != dim):
+            raise ValueError(f"graph.penetration needs closed obstacle outlines of {dim}-node facets in a "
+                             f"{dim}D scene (segments in 2D, triangles in 3D), got facets of {facets.shape[1]} nodes")
         n = len(rest)
         self.outlines: list[np.ndarray] = []
         if len(facets) == 0:
             return
-        graph = sparse.coo_matrix((np.ones(len(facets)), (facets[:, 0], facets[:, 1])), shape=(n, n))
+        pairs = np.concatenate([facets[:, [i, (i + 1) % dim]] for i in range(dim)])
+        graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
         _, labels = connected_components(graph, directed=False)
-        body = rest[:n_body]
+        body = rest[:n_body][:: max(1, n_body // 256)]  # enough of them to tell a container
         for label in np.unique(labels[facets[:, 0]]):
             outline = facets[labels[facets[:, 0]] == label]
-            inside = np.abs(winding_numbers(body, rest[outline[:, 0]], rest[outline[:, 1]])) > 0.5
+            inside = np.abs(_winding(body, [rest[outline[:, i]] for i in range(dim)])) > 0.5
             if inside.mean() <= 0.5:  # not a container
                 self.outlines.append(outline)
 
     def __call__(self, pos: np.ndarray, coming: np.ndarray, free: np.ndarray) -> np.ndarray:
-        """(N, 2): for free nodes at ``pos`` inside an obstacle outline placed at ``coming`` (N, 2:
+        """(N, d): for free nodes at ``pos`` inside an obstacle outline placed at ``coming`` (N, d:
         where every node will be at the coming frame; only obstacle rows are read), the vector to
         the outline's nearest point; 0 elsewhere."""
         out = np.zeros_like(pos, dtype=np.float64)
         points = np.flatnonzero(free)
         for outline in self.outlines:
-            a, b = coming[outline[:, 0]], coming[outline[:, 1]]
-            low, high = np.minimum(a, b).min(0), np.maximum(a, b).max(0)
+            corners = [coming[outline[:, i]] for i in range(outline.shape[1])]
+            low, high = coming[outline.ravel()].min(0), coming[outline.ravel()].max(0)
             near = points[np.all((pos[points] >= low) & (pos[points] <= high), axis=1)]  # only these can be inside
-            inside = near[np.abs(winding_numbers(pos[near], a, b)) > 0.5]
+            inside = near[np.abs(_winding(pos[near], corners)) > 0.5]
             if len(inside):
-                out[inside] += closest_points(pos[inside], a, b) - pos[inside]
+                out[inside] += _closest(pos[inside], corners) - pos[inside]
         return out
