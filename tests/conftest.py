@@ -51,6 +51,15 @@ def tiny_dataset(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def tiny_folder(tiny_dataset, tmp_path_factory):
+    """The tiny dataset's folder, prepared as a training run prepares it (trajectories, metadata)."""
+    from bsms.run import load_config, prepare_dataset
+
+    config = load_config(tiny_run_config(tiny_dataset, tmp_path_factory.mktemp("runs")))
+    return prepare_dataset(config, progress=False)
+
+
+@pytest.fixture(scope="session")
 def tiny_dataset_3d(tmp_path_factory):
     """(dataset config path, data root) of a tiny 3D balls dataset generated once per session."""
     return _tiny(tmp_path_factory, "tiny_balls", TINY_DATASET_3D, "balls_quick.yaml")

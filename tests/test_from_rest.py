@@ -11,16 +11,15 @@ from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
 from bsms.models.simulator import LearnedSimulator
 from bsms.rollout import rollout
-from bsms.run import load_config, prepare_dataset, split_files
+from bsms.run import load_config, split_files
 from bsms.trainer import Trainer
 
 OPTIONS = GraphOptions(levels=3, from_rest=True)
 
 
 @pytest.fixture(scope="module")
-def folder(tiny_dataset, tmp_path_factory):
-    config = load_config(tiny_run_config(tiny_dataset, tmp_path_factory.mktemp("runs")))
-    return prepare_dataset(config, progress=False)
+def folder(tiny_folder):
+    return tiny_folder
 
 
 @pytest.fixture(scope="module")

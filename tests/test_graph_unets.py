@@ -16,7 +16,7 @@ from bsms.graph import bistride_levels, coarsen_contacts, contact_edges
 from bsms.level_graph import frame_graph, hierarchy_levels
 from bsms.models.graph_unets import GraphUNets, coarse_edges, top_k_per_graph
 from bsms.models.simulator import LearnedSimulator
-from bsms.run import load_config, prepare_dataset
+from bsms.run import load_config
 from bsms.trainer import Trainer
 from datagen import shapes
 
@@ -200,9 +200,8 @@ def test_cores_reject_bad_options():
 
 
 @pytest.fixture(scope="module")
-def folder(tiny_dataset, tmp_path_factory):
-    config = load_config(tiny_run_config(tiny_dataset, tmp_path_factory.mktemp("runs")))
-    return prepare_dataset(config, progress=False)
+def folder(tiny_folder):
+    return tiny_folder
 
 
 def test_trainer_resumes_exactly(tiny_dataset, folder, tmp_path, one_thread):

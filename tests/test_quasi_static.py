@@ -4,21 +4,19 @@ their whole velocity over the frame) in samples, multi-step training and rollout
 import numpy as np
 import pytest
 import torch
-from conftest import tiny_run_config
 from test_unroll import K, Stub, oracle, whole_batch
 from torch_geometric.data import Batch
 
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
 from bsms.rollout import rollout
-from bsms.run import load_config, prepare_dataset, split_files
+from bsms.run import split_files
 from bsms.unroll import UnrollSamples, collate, unrolled_loss
 
 
 @pytest.fixture(scope="module")
-def files(tiny_dataset, tmp_path_factory):
-    config = load_config(tiny_run_config(tiny_dataset, tmp_path_factory.mktemp("runs")))
-    return split_files(prepare_dataset(config, progress=False), "train")
+def files(tiny_folder):
+    return split_files(tiny_folder, "train")
 
 
 @pytest.fixture(scope="module")

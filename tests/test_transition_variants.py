@@ -23,7 +23,7 @@ from bsms.models.transition_variants import (
     mean_over_rows,
     uniform_weights,
 )
-from bsms.run import load_config, prepare_dataset
+from bsms.run import load_config
 from bsms.trainer import Trainer
 from datagen import shapes
 
@@ -323,8 +323,8 @@ def test_transitions_without_their_inputs_are_refused(meshes):
 
 # ----------------------------------------------------------------------------- training and resume
 @pytest.fixture(scope="module")
-def folder(tiny_dataset, tmp_path_factory):
-    return prepare_dataset(load_config(tiny_run_config(tiny_dataset, tmp_path_factory.mktemp("runs"))), progress=False)
+def folder(tiny_folder):
+    return tiny_folder
 
 
 @pytest.mark.parametrize("transition", ["learnable", "pos_kernel"])

@@ -13,7 +13,7 @@ from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
 from bsms.models.simulator import LearnedSimulator
 from bsms.rollout import rollout
-from bsms.run import load_config, prepare_dataset, split_files
+from bsms.run import load_config, split_files
 from bsms.trainer import Trainer
 from bsms.unroll import UnrollSamples, collate, unrolled_loss
 
@@ -21,9 +21,8 @@ K = 3  # model steps per sample; the tiny trajectories have 7 frames
 
 
 @pytest.fixture(scope="module")
-def folder(tiny_dataset, tmp_path_factory):
-    config = load_config(tiny_run_config(tiny_dataset, tmp_path_factory.mktemp("runs")))
-    return prepare_dataset(config, progress=False)
+def folder(tiny_folder):
+    return tiny_folder
 
 
 @pytest.fixture(scope="module")
