@@ -196,19 +196,33 @@ def _track(scenario: Scenario, x0: np.ndarray, v0: np.ndarray, steps: int, known
                   known_states=known_states)
 
 
-def _changes(model, tracks: list[_Track], t: int, device: torch.device, precision: str) -> list[np.ndarray]:
-    """One model call on the graphs of frame t of ``tracks`` as one batch -> (N_k, d) velocity
-    changes of every scenario node (zero on nodes outside the frame's graph)."""
-    frames = [k.frame(t) for k in tracks]
+def _changes(model, jobs: list[tuple[_Track, int]], device: torch.device, precision: str) -> list[np.ndarray]:
+    """One model call on the graphs of ``jobs`` ((track, frame) pairs) as one batch -> per job the
+    (N_k, d) velocity changes of every scenario node (zero on nodes outside the frame's graph)."""
+    frames = [k.frame(t) for k, t in jobs]
     change = model.velocity_change(level_graph(frames).to(device), precision=precision).double().cpu().numpy()
     out, start = [], 0
-    for k, frame in zip(tracks, frames, strict=True):
+    for (k, t), frame in zip(jobs, frames, strict=True):
         full = np.zeros((len(k.positions[t]), change.shape[1]))
         full[frame.nodes["scenario_nodes"]] = change[start: start + frame.n_nodes]
         start += frame.n_nodes
         k.graph_nodes.append([len(level.nodes) for level in frame.levels])
         out.append(full)
     return out
+
+
+def _step(model, jobs: list[tuple[_Track, int]], device: torch.device, precision: str) -> None:
+    """One model call on ``jobs`` (:func:`_changes`), each job's frame then advanced in order and
+    timed at its share of the call; a track that went non-finite at an earlier frame of the same
+    call stops there."""
+    start = time.perf_counter()
+    changes = _changes(model, jobs, device, precision)
+    _synchronize(device)
+    share = (time.perf_counter() - start) / len(jobs)
+    for (k, t), change in zip(jobs, changes, strict=True):
+        if k.running(t):
+            k.seconds.append(share)
+            k.advance(t, change)
 
 
 def _independent(tracks: list[_Track]) -> bool:
@@ -222,8 +236,7 @@ def _independent(tracks: list[_Track]) -> bool:
 def _all_frames(model, tracks: list[_Track], device: torch.device, precision: str, frames_per_call: int,
                 progress: bool) -> None:
     """The rollouts of independent frames (:func:`_independent`): up to ``frames_per_call`` frames
-    of every track joined into one model call, the frames then advanced in order. Each frame's
-    time is its share of its call."""
+    of every track joined into one model call (:func:`_step`)."""
     for k in tracks:  # the drive of every frame, before any is predicted
         if k.known is not None:
             k.positions[1:, k.scenario.kinematic] = k.known[1: k.steps + 1][:, k.scenario.kinematic]
@@ -234,20 +247,7 @@ def _all_frames(model, tracks: list[_Track], device: torch.device, precision: st
         jobs = [(k, t) for t in range(t0, min(t0 + frames_per_call, longest)) for k in tracks if k.running(t)]
         if not jobs:
             break
-        start = time.perf_counter()
-        frames = [k.frame(t) for k, t in jobs]
-        change = model.velocity_change(level_graph(frames).to(device), precision=precision).double().cpu().numpy()
-        _synchronize(device)
-        share = (time.perf_counter() - start) / len(jobs)
-        offset = 0
-        for (k, t), frame in zip(jobs, frames, strict=True):
-            full = np.zeros((len(k.positions[t]), change.shape[1]))
-            full[frame.nodes["scenario_nodes"]] = change[offset: offset + frame.n_nodes]
-            offset += frame.n_nodes
-            k.graph_nodes.append([len(level.nodes) for level in frame.levels])
-            if k.running(t):  # an earlier frame may have gone non-finite
-                k.seconds.append(share)
-                k.advance(t, full)
+        _step(model, jobs, device, precision)
 
 
 @torch.no_grad()
@@ -293,7 +293,7 @@ def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_
     if frames_per_call < 1:
         raise ValueError(f"frames_per_call must be >= 1, got {frames_per_call}")
     for _ in range(warmup):
-        _changes(model, tracks, 0, device, precision)
+        _changes(model, [(k, 0) for k in tracks], device, precision)
         for k in tracks:
             k.graph_nodes.clear()
     if frames_per_call > 1 and _independent(tracks):
@@ -303,13 +303,7 @@ def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_
         running = [k for k in tracks if k.running(t)]
         if not running:
             break
-        start = time.perf_counter()
-        changes = _changes(model, running, t, device, precision)
-        _synchronize(device)
-        share = (time.perf_counter() - start) / len(running)
-        for k, change in zip(running, changes, strict=True):
-            k.seconds.append(share)
-            k.advance(t, change)
+        _step(model, [(k, t) for k in running], device, precision)
     return [k.result() for k in tracks]
 
 

@@ -38,10 +38,6 @@ def require_tensorboard():
     return SummaryWriter
 
 
-def _summary_writer(folder: Path, purge_step: int | None):
-    return require_tensorboard()(log_dir=str(folder), purge_step=purge_step)
-
-
 class TrainingLog:
     """Where a run's training numbers go: ``metrics.csv`` in ``run_dir`` and, with
     ``tensorboard``, event files in ``run_dir/tensorboard``.
@@ -51,21 +47,19 @@ class TrainingLog:
 
     def __init__(self, run_dir, tensorboard: bool = False, resume_step: int | None = None):
         self.path = Path(run_dir) / "metrics.csv"
-        if resume_step is None:
-            with atomic_path(self.path) as tmp:
-                tmp.write_text(",".join(METRICS_FIELDS) + "\n")
-        else:
-            self._truncate(resume_step)
+        self._rewrite([] if resume_step is None else self._rows_up_to(resume_step))
         self.writer = None
         if tensorboard:
-            purge = None if resume_step is None else resume_step + 1
-            self.writer = _summary_writer(Path(run_dir) / "tensorboard", purge)
+            purge = None if resume_step is None else resume_step + 1  # events after the resumed step go
+            self.writer = require_tensorboard()(log_dir=str(Path(run_dir) / "tensorboard"), purge_step=purge)
 
-    def _truncate(self, step: int) -> None:
-        rows = []
-        if self.path.is_file():
-            with open(self.path, newline="") as fh:
-                rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= step]
+    def _rows_up_to(self, step: int) -> list[dict]:
+        if not self.path.is_file():
+            return []
+        with open(self.path, newline="") as fh:
+            return [r for r in csv.DictReader(fh) if int(r["step"]) <= step]
+
+    def _rewrite(self, rows: list[dict]) -> None:
         with atomic_path(self.path) as tmp, open(tmp, "w", newline="") as fh:
             writer = csv.DictWriter(fh, METRICS_FIELDS, lineterminator="\n")
             writer.writeheader()
@@ -87,9 +81,3 @@ class TrainingLog:
         """Write what TensorBoard holds in memory to its event file."""
         if self.writer is not None:
             self.writer.flush()
-
-    def close(self) -> None:
-        if self.writer is not None:
-            self.writer.flush()
-            self.writer.close()
-            self.writer = None
