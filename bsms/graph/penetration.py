@@ -34,12 +34,17 @@ def winding_numbers(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndar
     return np.arctan2(cross, dot).sum(1) / (2 * np.pi)
 
 
-def closest_points(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(P, 2) the point of the segments a[s]-b[s] (S, 2) nearest each of ``points`` (P, 2)."""
+def _on_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(P, S, d): the point of each segment a[s]-b[s] (S, d) nearest each point p (P, 1, d)."""
     ab = b - a
     length2 = np.maximum((ab * ab).sum(-1), np.finfo(float).tiny)
-    t = np.clip(((points[:, None, :] - a[None]) * ab[None]).sum(-1) / length2, 0.0, 1.0)  # (P, S)
-    candidates = a[None] + t[..., None] * ab[None]
+    t = np.clip(((p - a[None]) * ab[None]).sum(-1) / length2, 0.0, 1.0)  # (P, S)
+    return a[None] + t[..., None] * ab[None]
+
+
+def closest_points(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(P, 2) the point of the segments a[s]-b[s] (S, 2) nearest each of ``points`` (P, 2)."""
+    candidates = _on_segments(points[:, None, :], a, b)
     nearest = ((candidates - points[:, None, :]) ** 2).sum(-1).argmin(1)
     return candidates[np.arange(len(points)), nearest]
 
@@ -67,10 +72,7 @@ def closest_points_3d(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nd
         inside &= (np.cross(y - x, projected - x[None]) * normal[None]).sum(-1) >= 0
     candidates, distances = [], []
     for x, y in ((a, b), (b, c), (c, a)):
-        edge = y - x
-        t = np.clip(((p - x[None]) * edge[None]).sum(-1) / np.maximum((edge * edge).sum(-1), np.finfo(float).tiny),
-                    0.0, 1.0)
-        on_edge = x[None] + t[..., None] * edge[None]
+        on_edge = _on_segments(p, x, y)
         candidates.append(on_edge)
         distances.append(((on_edge - p) ** 2).sum(-1))
     candidates.append(projected)
