@@ -1,15 +1,19 @@
 """Wall time of ``bistride_levels`` next to a straightforward reference implementation.
 
 Meshes: gmsh disks (2D, triangles) and boxes (3D, tetrahedra) of about 1k, 10k, 50k and 200k
-nodes, meshed once and cached under ``.cache/benchmarks/``. For each mesh and seeding it
-times ``bistride_levels(mesh, levels=7, seeding=...)`` -- the mesh and 6 coarse levels, with
-transitions -- as the best of ``--repeats`` runs, each on a fresh Mesh object. In the same
-process it runs the reference below (once) where it can: plain Python BFS with a list as
+nodes, and a box of 180k nodes and about a million tetrahedra (``1Mtet``, 3D only; gmsh takes
+about 5 minutes to mesh it), meshed once and cached under ``.cache/benchmarks/``. For each mesh
+and seeding it times ``bistride_levels(mesh, levels=7, seeding=...)`` -- the mesh and 6 coarse
+levels, with transitions -- as the best of ``--repeats`` runs, each on a fresh Mesh object, on
+one thread. The ``scipy [s]`` column times the same call without the compiled loops
+(``BSMS_NATIVE=0``: scipy's sparse product and csgraph's searches, :mod:`bsms.graph.native`),
+once, and says whether it gives the same levels and transitions. In the same process it runs
+the reference below (once) where it can: plain Python BFS with a list as
 queue, two-hop sets for coarse edges, loops for the transition weights, and for MinAve a
 dense all-pairs BFS table. Both must give the same levels (kept nodes and edges) and the same
 down and up transition weights (to 1e-12).
 
-Run: python benchmarks/bistride_preprocess.py [--sizes 1k 10k 50k 200k] [--dims 2 3]
+Run: python benchmarks/bistride_preprocess.py [--sizes 1k 10k 50k 200k 1Mtet] [--dims 2 3]
 The table is printed and written to ``runs/benchmarks/bistride_preprocess.md``.
 """
 
@@ -17,20 +21,25 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import platform
 import time
 from pathlib import Path
 
-import numpy as np
-import scipy.sparse as sp
+os.environ["OMP_NUM_THREADS"] = "1"  # one core: the compiled loops' OpenMP included
 
-from bsms.graph import SEEDINGS, bistride_levels
-from datagen import shapes
-from datagen.mesh import Mesh
+import numpy as np  # noqa: E402
+import scipy.sparse as sp  # noqa: E402
+
+from bsms.graph import SEEDINGS, bistride_levels, native  # noqa: E402
+from datagen import shapes  # noqa: E402
+from datagen.mesh import Mesh  # noqa: E402
 
 LEVELS = 7  # the mesh and 6 coarse levels
-SIZES = {"1k": 1_000, "10k": 10_000, "50k": 50_000, "200k": 200_000}
-TARGETS = {(2, "50k", "close_center"): 0.2, (2, "50k", "min_ave"): 2.0, (2, "200k", "close_center"): 1.0}
+SIZES = {"1k": 1_000, "10k": 10_000, "50k": 50_000, "200k": 200_000, "1Mtet": 180_000}
+ONLY_3D = {"1Mtet"}
+TARGETS = {(2, "50k", "close_center"): 0.2, (2, "50k", "min_ave"): 2.0, (2, "200k", "close_center"): 1.0,
+           (3, "1Mtet", "min_ave"): 5.0}
 WEIGHT_TOLERANCE = 1e-12
 REFERENCE_MIN_AVE_NODES = 2_000  # its dense all-pairs table is O(N^2) in time and memory
 REFERENCE_3D_NODES = 12_000  # 3D coarse levels get dense (mean degree ~1000): two-hop sets explode
@@ -174,7 +183,20 @@ def weight_difference(hierarchy, reference) -> float:
 
 
 # --------------------------------------------------------------------------- timing
-def best_time(mesh: Mesh, seeding: str, repeats: int):
+def best_time(mesh: Mesh, seeding: str, repeats: int, compiled: bool = True):
+    """Best wall time of ``repeats`` builds and the last hierarchy; ``compiled=False`` switches
+    the compiled loops off (BSMS_NATIVE=0) for the duration."""
+    saved = os.environ.get("BSMS_NATIVE")
+    os.environ["BSMS_NATIVE"] = "1" if compiled else "0"
+    native.library.cache_clear()
+    try:
+        return _best_time(mesh, seeding, repeats)
+    finally:
+        os.environ.pop("BSMS_NATIVE") if saved is None else os.environ.update(BSMS_NATIVE=saved)
+        native.library.cache_clear()
+
+
+def _best_time(mesh: Mesh, seeding: str, repeats: int):
     times, hierarchy = [], None
     for _ in range(repeats):
         fresh = Mesh(mesh.nodes, mesh.cells)
@@ -196,6 +218,8 @@ def run_case(dim, name, mesh, seeding, args) -> str:
     fast, hierarchy = best_time(mesh, seeding, args.repeats)
     target = TARGETS.get((dim, name, seeding))
     verdict = "" if target is None else f"{'met' if fast < target else 'MISSED'} (< {target:g} s)"
+    plain, without = best_time(mesh, seeding, 1, compiled=False)
+    same_plain = "yes" if same_hierarchy(hierarchy, without) else "NO"
     reference = speedup = match = weights = "-"
     if reference_fits(dim, mesh.n_nodes, seeding, args.reference_max_nodes):
         start = time.perf_counter()
@@ -207,13 +231,26 @@ def run_case(dim, name, mesh, seeding, args) -> str:
             difference = weight_difference(hierarchy, levels)
             weights = f"{'yes' if difference <= WEIGHT_TOLERANCE else 'NO'} ({difference:.1e})"
     counts = "/".join(str(c) for c in hierarchy.node_counts)
-    return (f"| {dim}D | {name} | {mesh.n_nodes} | {seeding} | {fast:.3f} | {reference} | {speedup} | "
-            f"{match} | {weights} | {verdict} | {counts} |")
+    return (f"| {dim}D | {name} | {mesh.n_nodes} | {mesh.cells.shape[0]} | {seeding} | {fast:.3f} | "
+            f"{plain:.3f} ({same_plain}) | {reference} | {speedup} | {match} | {weights} | {verdict} | {counts} |")
+
+
+def same_hierarchy(a, b) -> bool:
+    """Every level's kept nodes, edges, seeds, weights and transitions identical."""
+    for x, y in zip(a.levels, b.levels, strict=True):
+        arrays = [(getattr(x, k), getattr(y, k)) for k in ("kept", "edge_index", "node_weights", "seeds")]
+        for kind in ("down", "up") if x.down is not None else ():
+            u, v = getattr(x, kind), getattr(y, kind)
+            arrays += [(getattr(u, k), getattr(v, k)) for k in ("rows", "cols", "weights")]
+        if not all(np.array_equal(u, v) for u, v in arrays):
+            return False
+    return True
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
+    parser.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES),
+                        help="1Mtet: 3D only, 5 minutes of meshing the first time")
     parser.add_argument("--dims", nargs="+", type=int, default=[2, 3], choices=[2, 3])
     parser.add_argument("--seedings", nargs="+", default=list(SEEDINGS), choices=list(SEEDINGS))
     parser.add_argument("--repeats", type=int, default=3)
@@ -221,12 +258,15 @@ def main() -> None:
                         help="largest mesh the reference runs on (also at most 2k for MinAve, 12k in 3D)")
     args = parser.parse_args()
     machine = platform.processor() or platform.machine()
-    lines = [f"bistride_levels, levels={LEVELS}, best of {args.repeats}; {machine}", "",
-             "| dim | size | nodes | seeding | bsms [s] | reference [s] | speed-up | same levels | same weights "
-             "(max difference) | target | nodes per level |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [f"bistride_levels, levels={LEVELS}, best of {args.repeats}, one thread; {machine}", "",
+             "| dim | size | nodes | cells | seeding | bsms [s] | scipy [s] (same) | reference [s] | speed-up | "
+             "same levels | same weights (max difference) | target | nodes per level |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
     for dim in args.dims:
         for name in args.sizes:
+            if name in ONLY_3D and dim != 3:
+                continue
             mesh = benchmark_mesh(dim, SIZES[name])
             for seeding in args.seedings:
                 lines.append(run_case(dim, name, mesh, seeding, args))

@@ -77,6 +77,8 @@ def test_the_installed_command_works_from_any_folder(installed, tmp_path):
     where = subprocess.run([sys.executable, "-c", "import bsms, datagen; print(bsms.__file__, datagen.__file__)"],
                            cwd=tmp_path, env=env, capture_output=True, text=True, check=True).stdout.split()
     assert all(Path(p).is_relative_to(target) for p in where), f"not the installed copy: {where}"
+    for source in ("datagen/mpm/csrc/umls.c", "bsms/graph/csrc/graph.c"):  # compiled on first use
+        assert (target / source).is_file(), f"{source} is not in the wheel"
     listing = _bsms(installed, tmp_path, "--help")
     assert listing.returncode == 0 and "  export " in listing.stdout
     for words in (["train", "configs/quickstart.yaml", "--help"], ["generate", "--help"], ["evaluate", "--help"],

@@ -7,9 +7,10 @@ two hops. Each level also stores the down/up transition operators from/to the le
 it (:mod:`bsms.graph.transitions`). Everything is deterministic for the same inputs, and a
 hierarchy can be cached on disk (:mod:`bsms.graph.cache`).
 
-Costs: one BFS per level (csgraph), one sparse product R R^T with R = (A+I)[kept, :] for the
-coarse edges, and a few sparse products for the transitions; MinAve seeding adds the search
-described in :mod:`bsms.graph.seeding`. Nothing is dense in the number of nodes.
+Costs: one BFS per level (csgraph), the pooled adjacency R R^T with R = (A+I)[kept, :] for the
+coarse edges (compiled bitset rows, :mod:`bsms.graph.native`, or scipy's sparse product), and a
+few sparse products for the transitions; MinAve seeding adds the search described in
+:mod:`bsms.graph.seeding`. Nothing is dense in the number of nodes.
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from bsms.graph import native
 from bsms.graph.bfs import bfs_depths, off_diagonal_pattern
 
 __all__ = ["bistride_pool", "coarse_adjacency", "closed_rows"]
@@ -53,6 +54,9 @@ def coarse_adjacency(closed: sp.csr_matrix) -> sp.csr_matrix:
     """Adjacency of the pooled level: kept pairs within two hops, (K, K) 0/1 CSR, no diagonal.
 
     closed: (K, N) rows of A + I at the kept nodes (:func:`closed_rows`). The product
-    R R^T = (A + I)^2 [K, K] never forms the square on all nodes.
+    R R^T = (A + I)^2 [K, K] never forms the square on all nodes. Compiled bitset rows
+    (:func:`bsms.graph.native.pooled_adjacency`) where a compiler is found, else scipy's product;
+    the same matrix either way.
     """
-    return off_diagonal_pattern(closed @ closed.T)
+    pooled = native.pooled_adjacency(closed)
+    return off_diagonal_pattern(closed @ closed.T) if pooled is None else pooled

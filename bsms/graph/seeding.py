@@ -15,7 +15,10 @@
     estimated from BFS out of ``_SAMPLED_SOURCES`` = 48 random nodes; the 12 best estimates
     are evaluated exactly (one BFS each); then a descent moves to the best neighbour while
     that lowers the exact mean (at most 32 steps; of a node's neighbours only the 16 with
-    the best estimates are tried, which bounds the cost on the dense coarse levels).
+    the best estimates are tried, which bounds the cost on the dense coarse levels). The
+    searches of each stage run together, 64 sources per bit-parallel search, where the
+    compiled loops are available (:func:`bsms.graph.native.multi_source_sums`): the same
+    integer sums, so the same seeds.
     ``benchmarks/min_ave_accuracy.py`` compares it with the exact median on every component
     of 0.5k-10k nodes of levels 0-2 of gmsh disk, annulus, L-shape, glyph, box and sphere
     meshes (72 searches, 72 BFS each on average): the exact median in 61, mean excess in
@@ -30,6 +33,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from bsms.graph import native
 from bsms.graph.bfs import bfs_depths, distance_sums
 
 __all__ = ["SEEDINGS", "EXACT_MIN_AVE_WORK", "component_seeds", "close_center_seeds",
@@ -72,26 +76,45 @@ def random_seeds(labels: np.ndarray, n_components: int, rng: np.random.Generator
     return argmin_per_component(rng.random(labels.size), labels, n_components)
 
 
+def source_distance_sums(component: sp.csr_matrix, sources: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sum over ``sources`` of each node's hop distance (N,), sum over the nodes of each source's
+    (S,)) on a connected graph: compiled, 64 sources per search (:mod:`bsms.graph.native`),
+    else one csgraph search per source; the same integers either way."""
+    sums = native.multi_source_sums(component, sources)
+    if sums is not None:
+        return sums
+    node_sums = np.zeros(component.shape[0], dtype=np.int64)
+    source_sums = np.zeros(len(sources), dtype=np.int64)
+    for i, source in enumerate(sources):
+        depth = bfs_depths(component, source)
+        node_sums += depth
+        source_sums[i] = depth.sum()
+    return node_sums, source_sums
+
+
 def _sampled_median(component: sp.csr_matrix, rng: np.random.Generator) -> int:
     """Approximate MinAve seed of one connected component (see the module docstring)."""
     n = component.shape[0]
+    if native.library() is not None:  # the compiled searches read int64 arrays: convert once
+        component = sp.csr_matrix((component.data, component.indices.astype(np.int64),
+                                   component.indptr.astype(np.int64)), shape=component.shape)
     sources = rng.choice(n, size=min(_SAMPLED_SOURCES, n), replace=False)
-    estimate = np.zeros(n, dtype=np.int64)
-    for source in sources:
-        estimate += bfs_depths(component, source)
+    estimate = source_distance_sums(component, sources)[0]
     exact: dict[int, int] = {}
 
-    def total(node: int) -> tuple[int, int]:
-        if node not in exact:
-            exact[node] = int(bfs_depths(component, node).sum())
-        return exact[node], node
+    def best_of(nodes) -> int:
+        """The node of smallest exact distance sum, ties to the lowest index."""
+        nodes = [int(node) for node in nodes]
+        missing = np.array(sorted({node for node in nodes if node not in exact}), dtype=np.int64)
+        if missing.size:
+            exact.update(zip(missing.tolist(), source_distance_sums(component, missing)[1].tolist(), strict=True))
+        return min((exact[node], node) for node in nodes)[1]
 
-    candidates = np.argsort(estimate, kind="stable")[:_CANDIDATES]
-    best = min(total(int(node)) for node in candidates)[1]
+    best = best_of(np.argsort(estimate, kind="stable")[:_CANDIDATES])
     for _ in range(_MAX_DESCENT_STEPS):
         neighbours = component.indices[component.indptr[best]:component.indptr[best + 1]]
         neighbours = neighbours[np.argsort(estimate[neighbours], kind="stable")[:_DESCENT_WIDTH]]
-        step = min(total(int(node)) for node in [best, *neighbours])[1]
+        step = best_of([best, *neighbours])
         if step == best:
             break
         best = step
@@ -131,7 +154,8 @@ def min_ave_seeds(adjacency: sp.csr_matrix, labels: np.ndarray, n_components: in
         solved[batch] = True
     for component in np.flatnonzero(~solved):
         lo, hi = starts[component], starts[component + 1]
-        seeds[component] = order[lo + _sampled_median(grouped[lo:hi, lo:hi].tocsr(), rng)]
+        block = grouped if hi - lo == grouped.shape[0] else grouped[lo:hi, lo:hi].tocsr()
+        seeds[component] = order[lo + _sampled_median(block, rng)]
     return seeds
 
 

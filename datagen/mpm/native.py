@@ -7,87 +7,33 @@ operations over (P, K) slot arrays; written as one loop per particle it reads ea
 on the CPU; :func:`~datagen.mpm.kernels.umls_kernel` falls back to its torch code otherwise
 (the torch code is the reference the tests compare against).
 
-The library is compiled once per source, compiler and CPU with ``cc -O3 -march=native -fopenmp``
-(``CC`` picks the compiler) into ``$BSMS_CACHE/native`` (default ``~/.cache/bsms/native``),
-written under a temporary name and renamed, so concurrent first uses cannot see half a file.
-``BSMS_NATIVE=0`` turns it off. Without a working compiler the solver warns once and runs in
-torch.
+The library is compiled once per source, compiler and CPU by :func:`datagen.compiled.build`
+(``CC``, ``$BSMS_CACHE/native``, ``BSMS_NATIVE=0`` to turn it off). Without a working compiler
+the solver warns once and runs in torch.
 """
 
 from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
-import os
-import platform
-import shutil
-import subprocess
-import tempfile
-import warnings
 from pathlib import Path
 
 import torch
+
+from datagen import compiled
+from datagen.compiled import cache_dir
 
 __all__ = ["library", "available", "umls_weights", "p2g", "g2p", "locate_guess", "patch_average", "cache_dir"]
 
 SOURCE = Path(__file__).with_name("csrc") / "umls.c"
 BLOCKS = 4  # particle blocks of the node sums (csrc/umls.c): results do not depend on the thread count
-FLAGS = ("-O3", "-march=native", "-fPIC", "-shared", "-fopenmp")
-
-
-def cache_dir() -> Path:
-    """Where compiled libraries are kept: ``$BSMS_CACHE/native`` or ``~/.cache/bsms/native``."""
-    root = os.environ.get("BSMS_CACHE") or Path.home() / ".cache" / "bsms"
-    return Path(root) / "native"
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(("model name", "flags")):
-                return line
-    except OSError:
-        pass
-    return platform.processor()
-
-
-def _compile(compiler: str, out: Path) -> None:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
-    os.close(fd)
-    try:
-        for flags in (FLAGS, tuple(f for f in FLAGS if f not in ("-fopenmp", "-march=native"))):
-            done = subprocess.run([compiler, *flags, str(SOURCE), "-o", tmp, "-lm"], capture_output=True, text=True)
-            if done.returncode == 0:
-                os.replace(tmp, out)
-                return
-        raise OSError(f"{compiler} failed: {done.stderr.strip()[-500:]}")
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 @functools.cache
 def library() -> ctypes.CDLL | None:
     """The compiled library (built into :func:`cache_dir` on first use), or None where it cannot be."""
-    if os.environ.get("BSMS_NATIVE", "1") == "0":
-        return None
-    compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
-    if compiler is None:
-        warnings.warn("no C compiler (cc) found: the UMLS kernel runs in torch, several times slower; "
-                      "install gcc, or set BSMS_NATIVE=0 to silence this", RuntimeWarning, stacklevel=2)
-        return None
-    key = hashlib.sha256("\n".join([SOURCE.read_text(), compiler, " ".join(FLAGS), platform.machine(),
-                                    _cpu_model()]).encode()).hexdigest()[:16]
-    path = cache_dir() / f"umls-{key}.so"
-    try:
-        if not path.is_file():
-            _compile(compiler, path)
-        lib = ctypes.CDLL(str(path))
-    except OSError as error:
-        warnings.warn(f"could not build the compiled UMLS kernel ({error}); it runs in torch, several times "
-                      "slower. Set BSMS_NATIVE=0 to silence this", RuntimeWarning, stacklevel=2)
+    lib = compiled.build(SOURCE, "compiled UMLS kernel", "it runs in torch, several times slower")
+    if lib is None:
         return None
     i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
     lib.bsms_umls_weights.argtypes = [i64, i64, i64, i64, f64] + [ptr] * 11 + [i64]

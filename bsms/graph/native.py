@@ -1,0 +1,128 @@
+"""Compiled loops of the bi-stride hierarchy (``csrc/graph.c``), built on first use.
+
+Two loops dominate a 3D hierarchy once its coarse levels densify (a million-tetrahedron box:
+mean degree ~1,000 on level 4): the pooled adjacency R R^T of every coarse level and the
+breadth-first searches of MinAve seeding. Here
+
+- :func:`pooled_adjacency` builds each row of R R^T as a bitset over the kept nodes, either
+  setting the bits of the kept nodes each neighbour touches one by one (sparse levels) or
+  OR-ing whole precomputed rows (dense levels, where a row of K/64 words costs less than the
+  neighbour's kept nodes one by one), and reads the set bits out in order: sorted rows, no
+  diagonal, no sort;
+- :func:`multi_source_sums` runs breadth-first search from 64 sources at once, a bit per
+  source in a word per node (one sweep over the adjacency per hop), and returns the distance
+  sums that MinAve needs: per node over the sources, and per source over the nodes.
+
+Both return exactly what the scipy/csgraph code returns (tests compare them on meshes with
+several components); the callers use that code where no compiler is found or ``BSMS_NATIVE=0``.
+Built by :func:`datagen.compiled.build`.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from datagen import compiled
+
+__all__ = ["library", "pooled_adjacency", "multi_source_sums", "DENSE_TABLE_BYTES"]
+
+SOURCE = Path(__file__).with_name("csrc") / "graph.c"
+DENSE_TABLE_BYTES = 1 << 28
+"""The dense rows (one bitset over the kept nodes per fine node) are used up to this size."""
+_DENSE_RATIO = 8  # dense when a row's words are fewer than 8x the kept nodes a neighbour touches
+
+
+@functools.cache
+def library() -> ctypes.CDLL | None:
+    """The compiled library, or None where it cannot be built (the scipy code runs instead)."""
+    lib = compiled.build(SOURCE, "compiled bi-stride loops", "the hierarchy is built by scipy, several times slower")
+    if lib is None:
+        return None
+    i64, ptr = ctypes.c_int64, ctypes.c_void_p
+    lib.bsms_pooled_sparse.argtypes = [i64] + [ptr] * 7
+    lib.bsms_pooled_sparse.restype = ctypes.c_int
+    lib.bsms_pooled_dense.argtypes = [i64, i64] + [ptr] * 5
+    lib.bsms_pooled_dense.restype = ctypes.c_int
+    lib.bsms_bitset_rows.argtypes = [i64, i64] + [ptr] * 4
+    lib.bsms_bitset_rows.restype = None
+    lib.bsms_multi_bfs.argtypes = [i64, ptr, ptr, i64, ptr, ptr, ptr]
+    lib.bsms_multi_bfs.restype = ctypes.c_int
+    return lib
+
+
+def _int64(array: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(array, dtype=np.int64)
+
+
+def _address(array: np.ndarray | None) -> int | None:
+    return None if array is None else array.ctypes.data
+
+
+def pooled_adjacency(closed: sp.csr_matrix, dense: bool | None = None) -> sp.csr_matrix | None:
+    """(K, K) 0/1 CSR of kept pairs within two hops, sorted indices, no diagonal; None without
+    the library. closed: (K, N) rows of A + I at the kept nodes, sorted indices
+    (:func:`bsms.graph.pooling.closed_rows`). dense: force the dense or the sparse rows
+    (default: the cheaper, within :data:`DENSE_TABLE_BYTES`)."""
+    lib = library()
+    if lib is None:
+        return None
+    n_kept, n_nodes = closed.shape
+    reach = closed.T.tocsr()
+    words = -(-n_kept // 64)
+    if dense is None:
+        touched = reach.nnz / max(n_nodes, 1)  # kept nodes per closed neighbourhood: bits set one by one
+        table = max(n_nodes * (-(-words // 8) * 8), n_kept * words) * 8
+        dense = words < _DENSE_RATIO * touched and table <= DENSE_TABLE_BYTES
+    c_ptr, c_idx, r_ptr, r_idx = (_int64(a) for a in (closed.indptr, closed.indices, reach.indptr, reach.indices))
+    counts = np.empty(n_kept, dtype=np.int64)
+    indptr = np.zeros(n_kept + 1, dtype=np.int64)
+    if dense:
+        rows = np.empty((n_kept, words), dtype=np.uint64)
+        if lib.bsms_pooled_dense(n_kept, n_nodes, *(_address(a) for a in (c_ptr, c_idx, r_ptr, r_idx, rows))):
+            raise MemoryError(f"pooled adjacency of {n_kept} kept nodes: out of memory")
+        lib.bsms_bitset_rows(n_kept, words, rows.ctypes.data, counts.ctypes.data, None, None)
+        np.cumsum(counts, out=indptr[1:])
+        indices = np.empty(int(indptr[-1]), dtype=np.int64)
+        lib.bsms_bitset_rows(n_kept, words, rows.ctypes.data, None, indptr.ctypes.data, indices.ctypes.data)
+    else:
+        arrays = tuple(_address(a) for a in (c_ptr, c_idx, r_ptr, r_idx))
+        if lib.bsms_pooled_sparse(n_kept, *arrays, counts.ctypes.data, None, None):
+            raise MemoryError(f"pooled adjacency of {n_kept} kept nodes: out of memory")
+        np.cumsum(counts, out=indptr[1:])
+        indices = np.empty(int(indptr[-1]), dtype=np.int64)
+        if lib.bsms_pooled_sparse(n_kept, *arrays, None, indptr.ctypes.data, indices.ctypes.data):
+            raise MemoryError(f"pooled adjacency of {n_kept} kept nodes: out of memory")
+    index_type = np.int32 if max(n_kept, indices.size) < 2**31 else np.int64
+    return sp.csr_matrix((np.ones(indices.size), indices.astype(index_type), indptr.astype(index_type)),
+                         shape=(n_kept, n_kept))
+
+
+def multi_source_sums(adjacency: sp.csr_matrix, sources) -> tuple[np.ndarray, np.ndarray] | None:
+    """Hop distance sums of a connected graph from ``sources``; None without the library.
+
+    adjacency: (N, N) symmetric CSR, connected; sources: (S,) distinct node indices ->
+    (node_sums (N,) int64: sum over the sources of d(s, v); source_sums (S,) int64: sum over
+    the nodes of d(s, v)), equal to summing :func:`bsms.graph.bfs.bfs_depths` one source at a
+    time. 64 sources per sweep.
+    """
+    lib = library()
+    if lib is None:
+        return None
+    sources = _int64(np.atleast_1d(sources))
+    ptr, idx = _int64(adjacency.indptr), _int64(adjacency.indices)
+    n = adjacency.shape[0]
+    node_sums = np.zeros(n, dtype=np.int64)
+    source_sums = np.zeros(sources.size, dtype=np.int64)
+    for start in range(0, sources.size, 64):
+        chunk = _int64(sources[start:start + 64])
+        sums = np.zeros(chunk.size, dtype=np.int64)
+        if lib.bsms_multi_bfs(n, ptr.ctypes.data, idx.ctypes.data, chunk.size, chunk.ctypes.data,
+                              node_sums.ctypes.data, sums.ctypes.data):
+            raise MemoryError(f"breadth-first search on {n} nodes: out of memory")
+        source_sums[start:start + chunk.size] = sums
+    return node_sums, source_sums

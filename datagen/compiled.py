@@ -1,0 +1,80 @@
+"""Building the package's C sources into shared libraries, once per source, compiler and CPU.
+
+A source is compiled with ``cc -O3 -march=native -fopenmp`` (``CC`` picks the compiler; without
+OpenMP or ``-march=native`` where those fail) into ``$BSMS_CACHE/native`` (default
+``~/.cache/bsms/native``), under a temporary name and then renamed, so concurrent first uses
+never see half a file. ``BSMS_NATIVE=0`` turns every compiled path off. Callers keep a pure
+Python/torch path for when :func:`build` returns None; the tests compare the two.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+__all__ = ["FLAGS", "cache_dir", "build"]
+
+FLAGS = ("-O3", "-march=native", "-fPIC", "-shared", "-fopenmp")
+
+
+def cache_dir() -> Path:
+    """Where compiled libraries are kept: ``$BSMS_CACHE/native`` or ``~/.cache/bsms/native``."""
+    root = os.environ.get("BSMS_CACHE") or Path.home() / ".cache" / "bsms"
+    return Path(root) / "native"
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("model name", "flags")):
+                return line
+    except OSError:
+        pass
+    return platform.processor()
+
+
+def _compile(compiler: str, source: Path, out: Path) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+    os.close(fd)
+    try:
+        for flags in (FLAGS, tuple(f for f in FLAGS if f not in ("-fopenmp", "-march=native"))):
+            done = subprocess.run([compiler, *flags, str(source), "-o", tmp, "-lm"], capture_output=True, text=True)
+            if done.returncode == 0:
+                os.replace(tmp, out)
+                return
+        raise OSError(f"{compiler} failed: {done.stderr.strip()[-500:]}")
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def build(source: Path, what: str, fallback: str) -> ctypes.CDLL | None:
+    """The library of ``source``, compiled into :func:`cache_dir` on first use, or None where it
+    cannot be (warning once per call site's cache: ``what`` names the compiled code, ``fallback``
+    says what runs instead, e.g. "it runs in torch, several times slower")."""
+    if os.environ.get("BSMS_NATIVE", "1") == "0":
+        return None
+    compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        warnings.warn(f"no C compiler (cc) found: {fallback}; install gcc, or set BSMS_NATIVE=0 to silence this",
+                      RuntimeWarning, stacklevel=3)
+        return None
+    key = hashlib.sha256("\n".join([source.read_text(), compiler, " ".join(FLAGS), platform.machine(),
+                                    _cpu_model()]).encode()).hexdigest()[:16]
+    path = cache_dir() / f"{source.stem}-{key}.so"
+    try:
+        if not path.is_file():
+            _compile(compiler, source, path)
+        return ctypes.CDLL(str(path))
+    except OSError as error:
+        warnings.warn(f"could not build the {what} ({error}); {fallback}. Set BSMS_NATIVE=0 to silence this",
+                      RuntimeWarning, stacklevel=3)
+        return None
