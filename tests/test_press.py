@@ -171,6 +171,23 @@ def test_family_samples_are_deterministic_and_test_shapes_are_unseen():
         assert p["indenter"] in INDENTER_SIZES and len(p["indenter_size"]) == INDENTER_SIZES[p["indenter"]]
 
 
+def test_train_polygons_mix_random_polygons_into_training_and_leave_old_draws_alone():
+    family = get_family("press")
+    plain = [family.sample({}, np.random.default_rng(k), "train") for k in range(40)]
+    assert plain == [family.sample({"train_polygons": 0.0}, np.random.default_rng(k), "train") for k in range(40)]
+    mixed = [family.sample({"train_polygons": 0.5}, np.random.default_rng(k), "valid") for k in range(40)]
+    polygons = [p["polygon"] for p in mixed if "polygon" in p]
+    assert 10 <= len(polygons) <= 30 and all("char" in p for p in mixed if "polygon" not in p)
+    assert len({str(p) for p in polygons}) == len(polygons)  # every one drawn afresh
+    everything = [family.sample({"train_polygons": 1}, np.random.default_rng(k), "train") for k in range(5)]
+    assert all("polygon" in p and 5 <= len(p["polygon"]) <= 9 for p in everything)
+    for bad in (1.5, -0.1, "half", True):
+        with pytest.raises(ConfigError) as error:
+            family.sample({"train_polygons": bad}, np.random.default_rng(0), "train")
+        assert str(error.value) == ("ranges.train_polygons is the fraction of bodies that are random polygons: "
+                                    f"a number from 0 to 1, got {bad!r}")
+
+
 def test_family_places_one_foreign_mesh_with_overrides(tmp_path):
     inline_nodes = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], float)
     from datagen.mesh import Mesh

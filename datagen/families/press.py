@@ -1,11 +1,13 @@
 """Family ``press``: a stiff elastic body on a floor, pressed by a moving indenter and released.
 
 Bodies of engineering stiffness (E log-uniform in megapascals) shaped as letters: the train
-and valid splits draw from ``ranges.train_chars``; the test split from ``ranges.test_chars``
-or, with probability ``ranges.test_polygons``, a random star-shaped polygon -- shapes never
-seen in training. The indenter (disk, box or wedge, sized relative to the body) starts just
-above the body at a random offset and moves along a random line near the vertical at a few
-cm/s, then back (:mod:`datagen.scenes.press`).
+and valid splits draw from ``ranges.train_chars`` or, with probability ``ranges.train_polygons``
+(default 0), a random star-shaped polygon; the test split from ``ranges.test_chars`` or, with
+probability ``ranges.test_polygons``, a random star-shaped polygon -- shapes never seen in
+training (every polygon is drawn afresh, so a test polygon is never a training one). The
+indenter (disk, box or wedge, sized relative to the body) starts just above the body at a
+random offset and moves along a random line near the vertical at a few cm/s, then back
+(:mod:`datagen.scenes.press`).
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ SCENE = "press"
 DIM, CONTACT, OBSTACLES, CLAMPED = 2, True, True, False
 DRIVEN = True  # the indenter moves as prescribed and does work on the body
 RANGES = {
-    "train_chars": "ABCDEFHKLMNPRTVWXYZ", "test_chars": "GJQSU", "test_polygons": 0.5, "polygon_vertices": [5, 9],
+    "train_chars": "ABCDEFHKLMNPRTVWXYZ", "test_chars": "GJQSU", "test_polygons": 0.5, "train_polygons": 0.0,
+    "polygon_vertices": [5, 9],
     "size": [0.1, 0.13], "E": [1e6, 2e7], "nu": [0.3, 0.45], "density": [1000.0, 1500.0],
     "indenters": ["disk", "box", "wedge"], "indenter_scale": [0.12, 0.25], "indenter_aspect": [0.4, 1.0],
     "indenter_offset": [-0.25, 0.25], "speed": [0.03, 0.06], "angle": [-10.0, 10.0], "gap": [0.001, 0.003],
@@ -53,12 +56,22 @@ def _indenter(r: dict, rng: np.random.Generator, size: float) -> dict:
     return {"indenter": shape, "indenter_size": [round(s, 6) for s in sizes]}
 
 
+def _fraction(r: dict, key: str) -> float:
+    value = r[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
+        raise ConfigError(f"ranges.{key} is the fraction of bodies that are random polygons: a number from 0 to 1, "
+                          f"got {value!r}")
+    return float(value)
+
+
 def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
     r = check_ranges(NAME, RANGES, ranges)
     chars = _alphabet(r, split)
     size = uniform(r, "size", rng)
     body: dict = {"char": chars[int(rng.integers(len(chars)))]}
-    if split == "test" and rng.uniform() < float(r["test_polygons"]):
+    polygons = _fraction(r, "test_polygons" if split == "test" else "train_polygons")
+    # a train/valid draw takes no extra random number when train_polygons is 0: older datasets replay
+    if (split == "test" or polygons > 0) and rng.uniform() < polygons:
         body = {"polygon": random_polygon(rng, integer(r, "polygon_vertices", rng, minimum=3))}
     return {
         **body, "size": size, "E": log_uniform(r, "E", rng), "nu": uniform(r, "nu", rng),
