@@ -4,11 +4,12 @@ Two loops dominate a 3D hierarchy once its coarse levels densify (a million-tetr
 mean degree ~1,000 on level 4): the pooled adjacency R R^T of every coarse level and the
 breadth-first searches of MinAve seeding. Here
 
-- :func:`pooled_adjacency` builds each row of R R^T as a bitset over the kept nodes, either
-  setting the bits of the kept nodes each neighbour touches one by one (sparse levels) or
-  OR-ing whole precomputed rows (dense levels, where a row of K/64 words costs less than the
-  neighbour's kept nodes one by one), and reads the set bits out in order: sorted rows, no
-  diagonal, no sort;
+- :func:`pooled_adjacency` builds each row of R R^T from the kept nodes its neighbours touch:
+  on sparse levels one by one (a bitset drops repeats, a short sort orders them), on dense
+  levels (where a row's K/64 words cost less than a neighbour's kept nodes one by one) as
+  bitsets OR-ed a cache line at a time over column blocks of 512 kept nodes, read out in order.
+  Both count first and then write, so nothing of the size of the dense matrix is allocated
+  (first-touch page faults of large transient arrays cost more than the loops on some VMs);
 - :func:`multi_source_sums` runs breadth-first search from 64 sources at once, a bit per
   source in a word per node (one sweep over the adjacency per hop), and returns the distance
   sums that MinAve needs: per node over the sources, and per source over the nodes.
@@ -29,11 +30,9 @@ import scipy.sparse as sp
 
 from datagen import compiled
 
-__all__ = ["library", "pooled_adjacency", "multi_source_sums", "DENSE_TABLE_BYTES"]
+__all__ = ["library", "pooled_adjacency", "multi_source_sums"]
 
 SOURCE = Path(__file__).with_name("csrc") / "graph.c"
-DENSE_TABLE_BYTES = 1 << 28
-"""The dense rows (one bitset over the kept nodes per fine node) are used up to this size."""
 _DENSE_RATIO = 8  # dense when a row's words are fewer than 8x the kept nodes a neighbour touches
 
 
@@ -46,10 +45,8 @@ def library() -> ctypes.CDLL | None:
     i64, ptr = ctypes.c_int64, ctypes.c_void_p
     lib.bsms_pooled_sparse.argtypes = [i64] + [ptr] * 7
     lib.bsms_pooled_sparse.restype = ctypes.c_int
-    lib.bsms_pooled_dense.argtypes = [i64, i64] + [ptr] * 5
+    lib.bsms_pooled_dense.argtypes = [i64, i64] + [ptr] * 7
     lib.bsms_pooled_dense.restype = ctypes.c_int
-    lib.bsms_bitset_rows.argtypes = [i64, i64] + [ptr] * 4
-    lib.bsms_bitset_rows.restype = None
     lib.bsms_multi_bfs.argtypes = [i64, ptr, ptr, i64, ptr, ptr, ptr]
     lib.bsms_multi_bfs.restype = ctypes.c_int
     return lib
@@ -64,42 +61,35 @@ def _address(array: np.ndarray | None) -> int | None:
 
 
 def pooled_adjacency(closed: sp.csr_matrix, dense: bool | None = None) -> sp.csr_matrix | None:
-    """(K, K) 0/1 CSR of kept pairs within two hops, sorted indices, no diagonal; None without
-    the library. closed: (K, N) rows of A + I at the kept nodes, sorted indices
+    """(K, K) 0/1 CSR of kept pairs within two hops, sorted int32 indices, no diagonal; None
+    without the library. closed: (K, N) rows of A + I at the kept nodes, sorted indices
     (:func:`bsms.graph.pooling.closed_rows`). dense: force the dense or the sparse rows
-    (default: the cheaper, within :data:`DENSE_TABLE_BYTES`)."""
+    (default: the cheaper one by the count of bits each costs)."""
     lib = library()
     if lib is None:
         return None
     n_kept, n_nodes = closed.shape
     reach = closed.T.tocsr()
-    words = -(-n_kept // 64)
+    reach.sort_indices()
     if dense is None:
+        words = -(-n_kept // 64)
         touched = reach.nnz / max(n_nodes, 1)  # kept nodes per closed neighbourhood: bits set one by one
-        table = max(n_nodes * (-(-words // 8) * 8), n_kept * words) * 8
-        dense = words < _DENSE_RATIO * touched and table <= DENSE_TABLE_BYTES
+        dense = words < _DENSE_RATIO * touched
     c_ptr, c_idx, r_ptr, r_idx = (_int64(a) for a in (closed.indptr, closed.indices, reach.indptr, reach.indices))
+    build = lib.bsms_pooled_dense if dense else lib.bsms_pooled_sparse
+    head = (n_kept, n_nodes) if dense else (n_kept,)
+    arrays = tuple(_address(a) for a in (c_ptr, c_idx, r_ptr, r_idx))
     counts = np.empty(n_kept, dtype=np.int64)
+    if build(*head, *arrays, counts.ctypes.data, None, None):
+        raise MemoryError(f"pooled adjacency of {n_kept} kept nodes: out of memory")
     indptr = np.zeros(n_kept + 1, dtype=np.int64)
-    if dense:
-        rows = np.empty((n_kept, words), dtype=np.uint64)
-        if lib.bsms_pooled_dense(n_kept, n_nodes, *(_address(a) for a in (c_ptr, c_idx, r_ptr, r_idx, rows))):
-            raise MemoryError(f"pooled adjacency of {n_kept} kept nodes: out of memory")
-        lib.bsms_bitset_rows(n_kept, words, rows.ctypes.data, counts.ctypes.data, None, None)
-        np.cumsum(counts, out=indptr[1:])
-        indices = np.empty(int(indptr[-1]), dtype=np.int64)
-        lib.bsms_bitset_rows(n_kept, words, rows.ctypes.data, None, indptr.ctypes.data, indices.ctypes.data)
-    else:
-        arrays = tuple(_address(a) for a in (c_ptr, c_idx, r_ptr, r_idx))
-        if lib.bsms_pooled_sparse(n_kept, *arrays, counts.ctypes.data, None, None):
-            raise MemoryError(f"pooled adjacency of {n_kept} kept nodes: out of memory")
-        np.cumsum(counts, out=indptr[1:])
-        indices = np.empty(int(indptr[-1]), dtype=np.int64)
-        if lib.bsms_pooled_sparse(n_kept, *arrays, None, indptr.ctypes.data, indices.ctypes.data):
-            raise MemoryError(f"pooled adjacency of {n_kept} kept nodes: out of memory")
-    index_type = np.int32 if max(n_kept, indices.size) < 2**31 else np.int64
-    return sp.csr_matrix((np.ones(indices.size), indices.astype(index_type), indptr.astype(index_type)),
-                         shape=(n_kept, n_kept))
+    np.cumsum(counts, out=indptr[1:])
+    if indptr[-1] >= 2**31:
+        return None  # int32 indices would overflow: scipy's product
+    indices = np.empty(int(indptr[-1]), dtype=np.int32)
+    if build(*head, *arrays, None, indptr.ctypes.data, indices.ctypes.data):
+        raise MemoryError(f"pooled adjacency of {n_kept} kept nodes: out of memory")
+    return sp.csr_matrix((np.ones(indices.size), indices, indptr.astype(np.int32)), shape=(n_kept, n_kept))
 
 
 def multi_source_sums(adjacency: sp.csr_matrix, sources) -> tuple[np.ndarray, np.ndarray] | None:

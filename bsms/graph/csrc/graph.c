@@ -8,6 +8,7 @@
 #include <string.h>
 
 typedef int64_t i64;
+typedef int32_t i32;
 typedef uint64_t u64;
 
 /* The pooled adjacency of a coarse level: row r holds the kept nodes within two hops of kept
@@ -54,16 +55,11 @@ static i64 row_count(const u64 *row, i64 words) {
     return total;
 }
 
-static void row_indices(const u64 *row, i64 words, i64 *out) {
-    for (i64 w = 0; w < words; w++)
-        for (u64 bits = row[w]; bits; bits &= bits - 1) *out++ = w * 64 + __builtin_ctzll(bits);
-}
-
 /* Sparse levels, two passes that build every row again: counts (K,) in pass 1 (out_ptr,
  * out_idx NULL); pass 2 (counts NULL) writes row r's sorted kept indices at out_idx[out_ptr[r]].
  * Returns 0, or 1 when memory runs out. */
 int bsms_pooled_sparse(i64 n_kept, const i64 *c_ptr, const i64 *c_idx, const i64 *r_ptr, const i64 *r_idx,
-                       i64 *counts, const i64 *out_ptr, i64 *out_idx) {
+                       i64 *counts, const i64 *out_ptr, i32 *out_idx) {
     i64 words = (n_kept + 63) / 64, longest = 0;
     for (i64 r = 0; r < n_kept; r++) {
         i64 total = 0;
@@ -82,7 +78,8 @@ int bsms_pooled_sparse(i64 n_kept, const i64 *c_ptr, const i64 *c_idx, const i64
             if (!seen || !list) continue;
             i64 n = sparse_row(r, c_ptr, c_idx, r_ptr, r_idx, seen, list);
             if (counts) counts[r] = n;
-            else memcpy(out_idx + out_ptr[r], list, (size_t)n * sizeof(i64));
+            else
+                for (i64 i = 0; i < n; i++) out_idx[out_ptr[r] + i] = (i32)list[i];
         }
         free(seen);
         free(list);
@@ -90,23 +87,36 @@ int bsms_pooled_sparse(i64 n_kept, const i64 *c_ptr, const i64 *c_idx, const i64
     return failed;
 }
 
-/* Dense levels: every row as a bitset into rows (K x words), OR-ing whole rows of reach. reach
- * is first laid out as bitsets in column blocks of 8 words (one cache line per node and block),
- * and the rows are built block by block, so that the block being read (N cache lines) stays
- * in the core's cache. Returns 0, or 1 when memory runs out. */
+/* Dense levels, two passes like the sparse ones (counts, then indices): rows are built in
+ * column blocks of 512 kept nodes (8 words, one cache line per node). For each block a slice
+ * of reach is laid out as bitsets (N cache lines, reused from block to block, so that it stays
+ * in the core's cache and nothing of the size of the matrix is allocated), and row r's part of
+ * the block is the OR of the slice's lines at closed[r]. reach rows must be sorted. Returns 0,
+ * or 1 when memory runs out. */
 int bsms_pooled_dense(i64 n_kept, i64 n_nodes, const i64 *c_ptr, const i64 *c_idx, const i64 *r_ptr,
-                      const i64 *r_idx, u64 *rows) {
+                      const i64 *r_idx, i64 *counts, const i64 *out_ptr, i32 *out_idx) {
     i64 words = (n_kept + 63) / 64, blocks = (words + 7) / 8;
-    u64 *table = calloc((size_t)(blocks * n_nodes * 8), sizeof(u64));
-    if (!table) return 1;
-    for (i64 v = 0; v < n_nodes; v++)
-        for (i64 b = r_ptr[v]; b < r_ptr[v + 1]; b++) {
-            i64 w = r_idx[b] >> 6;
-            table[((w >> 3) * n_nodes + v) * 8 + (w & 7)] |= (u64)1 << (r_idx[b] & 63);
-        }
+    u64 *slice = malloc((size_t)(n_nodes * 8) * sizeof(u64));
+    i64 *cursor = malloc((size_t)n_nodes * sizeof(i64)), *at = malloc((size_t)n_kept * sizeof(i64));
+    if (!slice || !cursor || !at) {
+        free(slice);
+        free(cursor);
+        free(at);
+        return 1;
+    }
+    for (i64 v = 0; v < n_nodes; v++) cursor[v] = r_ptr[v];
+    for (i64 r = 0; r < n_kept; r++) {
+        at[r] = counts ? 0 : out_ptr[r];
+        if (counts) counts[r] = 0;
+    }
     for (i64 block = 0; block < blocks; block++) {
-        const u64 *slice = table + block * n_nodes * 8;
-        i64 width = words - block * 8 < 8 ? words - block * 8 : 8;
+        i64 end = (block + 1) * 512;
+        memset(slice, 0, (size_t)(n_nodes * 8) * sizeof(u64));
+        for (i64 v = 0; v < n_nodes; v++)
+            for (; cursor[v] < r_ptr[v + 1] && r_idx[cursor[v]] < end; cursor[v]++) {
+                i64 j = r_idx[cursor[v]] - block * 512;
+                slice[v * 8 + (j >> 6)] |= (u64)1 << (j & 63);
+            }
 #pragma omp parallel for schedule(static)
         for (i64 r = 0; r < n_kept; r++) {
             u64 acc[8] = {0};
@@ -114,22 +124,20 @@ int bsms_pooled_dense(i64 n_kept, i64 n_nodes, const i64 *c_ptr, const i64 *c_id
                 const u64 *line = slice + c_idx[a] * 8;
                 for (int j = 0; j < 8; j++) acc[j] |= line[j];
             }
-            memcpy(rows + r * words + block * 8, acc, (size_t)width * sizeof(u64));
+            if (r >= block * 512 && r < end) acc[(r - block * 512) >> 6] &= ~((u64)1 << (r & 63));
+            if (counts) {
+                counts[r] += row_count(acc, 8);
+            } else {
+                for (int w = 0; w < 8; w++)
+                    for (u64 bits = acc[w]; bits; bits &= bits - 1)
+                        out_idx[at[r]++] = (i32)(block * 512 + w * 64 + __builtin_ctzll(bits));
+            }
         }
     }
-    for (i64 r = 0; r < n_kept; r++) rows[r * words + (r >> 6)] &= ~((u64)1 << (r & 63));
-    free(table);
+    free(slice);
+    free(cursor);
+    free(at);
     return 0;
-}
-
-/* Bitset rows (K x words) -> counts (K,) (out_idx NULL), or the sorted indices of row r at
- * out_idx[out_ptr[r]] (counts NULL). */
-void bsms_bitset_rows(i64 n_rows, i64 words, const u64 *rows, i64 *counts, const i64 *out_ptr, i64 *out_idx) {
-#pragma omp parallel for schedule(static)
-    for (i64 r = 0; r < n_rows; r++) {
-        if (counts) counts[r] = row_count(rows + r * words, words);
-        else row_indices(rows + r * words, words, out_idx + out_ptr[r]);
-    }
 }
 
 /* Breadth-first search from up to 64 sources at once on a connected graph (n nodes, symmetric
