@@ -14,8 +14,6 @@ from bsms.graph import seeding as seeding_module
 from bsms.graph.bfs import bfs_depths, off_diagonal_pattern
 from bsms.graph.pooling import bistride_pool, closed_rows
 
-pytestmark = pytest.mark.skipif(not native.library(), reason="no C compiler: nothing compiled to compare")
-
 
 @pytest.fixture
 def scipy_only(monkeypatch):
