@@ -10,6 +10,7 @@ from test_unroll import Stub
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
 from bsms.models.simulator import LearnedSimulator
+import bsms.rollout as rollout_module
 from bsms.rollout import rollout
 from bsms.run import load_config, split_files
 from bsms.trainer import Trainer
@@ -144,6 +145,31 @@ def test_all_frames_in_one_call_equal_the_frame_by_frame_rollout(frames):
     np.testing.assert_allclose(whole.positions, one.positions, rtol=0, atol=1e-6)
     np.testing.assert_allclose(whole.velocities, one.velocities, rtol=0, atol=1e-4)
     assert len(whole.step_seconds) == steps and np.array_equal(whole.graph_nodes, one.graph_nodes)
+
+
+def test_cpu_calls_hold_at_most_the_node_budget(frames, monkeypatch):
+    """On a CPU, frames_per_call is capped so that a call holds at most CPU_NODES_PER_CALL graph
+    nodes (at least one frame): same rollout, more calls."""
+    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.velocities[0]
+    steps = len(x) - 1
+    torch.manual_seed(0)
+    model = LearnedSimulator("bsms_gnn", 2, n_levels=3, contact=True, latent=16)
+    model.output_normalizer.accumulate(torch.randn(50, 2) * 0.05)
+    calls = []
+    model.core.register_forward_hook(lambda module, args, out: calls.append(out.shape[0]))
+    whole = rollout(model, scenario, x[0], v[0], steps, known_positions=x, warmup=0, precision="f32",
+                    frames_per_call=steps)
+    nodes = len(whole.positions[0])
+    monkeypatch.setattr(rollout_module, "CPU_NODES_PER_CALL", 2 * nodes + 1)  # two frames per call
+    calls.clear()
+    capped = rollout(model, scenario, x[0], v[0], steps, known_positions=x, warmup=0, precision="f32",
+                     frames_per_call=steps)
+    assert len(calls) == -(-steps // 2) and max(calls) <= 2 * nodes
+    np.testing.assert_allclose(capped.positions, whole.positions, rtol=0, atol=1e-6)
+    monkeypatch.setattr(rollout_module, "CPU_NODES_PER_CALL", 1)  # below one frame: one frame per call
+    calls.clear()
+    rollout(model, scenario, x[0], v[0], steps, known_positions=x, warmup=0, precision="f32", frames_per_call=steps)
+    assert len(calls) == steps
 
 
 def test_frames_that_depend_on_each_other_step_one_by_one(folder):
