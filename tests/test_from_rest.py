@@ -7,10 +7,10 @@ import torch
 from conftest import tiny_run_config
 from test_unroll import Stub
 
+import bsms.rollout as rollout_module
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
 from bsms.models.simulator import LearnedSimulator
-import bsms.rollout as rollout_module
 from bsms.rollout import rollout
 from bsms.run import load_config, split_files
 from bsms.trainer import Trainer
