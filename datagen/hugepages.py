@@ -5,7 +5,7 @@ setting is ``madvise`` or ``defer+madvise``, a page fault in such a region compa
 synchronously until a 2 MiB page is free. On a machine whose memory is fragmented (a VM that
 has run for hours, a page cache full of datasets) that stall dominates code that allocates
 large transient arrays: building a 1M-tetrahedron bi-stride hierarchy measured 6.5 s with
-numpy's default against 4.2 s without it, and single runs of 14-22 s, nearly all of it system
+numpy's default against 4.3 s without it, and single runs of 14-22 s, nearly all of it system
 time. Plain 4 KiB pages cost a few percent in TLB misses at worst, so bsms turns numpy's
 advice off on such kernels when :mod:`datagen` is imported.
 
@@ -40,9 +40,7 @@ def configure(environ=os.environ, defrag: Path = DEFRAG) -> bool:
     Returns whether numpy's advice is on afterwards. Leaves it alone when the user chose:
     ``BSMS_HUGEPAGES=numpy`` or ``NUMPY_MADVISE_HUGEPAGE`` set.
     """
-    setter = np._core.multiarray._set_madvise_hugepage
-    current = setter(True)
-    setter(current)
+    current = np._core.multiarray._get_madvise_hugepage()
     if environ.get("BSMS_HUGEPAGES") == "numpy" or "NUMPY_MADVISE_HUGEPAGE" in environ:
         return current
     try:
@@ -50,6 +48,6 @@ def configure(environ=os.environ, defrag: Path = DEFRAG) -> bool:
     except OSError:  # not Linux, or no THP: nothing to choose
         return current
     if current and stalls_on_fault(text):
-        setter(False)
+        np._core.multiarray._set_madvise_hugepage(False)
         return False
     return current

@@ -33,7 +33,6 @@ def test_beats_predicting_no_motion_on_a_fresh_beam(tmp_path):
     generate(dconfig, out=tmp_path, splits=["test"], workers=1, progress=False)
     trajectory = load(next((tmp_path / "fresh_beam" / "test").glob("*.h5")))
     model, config, _ = load_model(FOLDER)
-    torch.set_num_threads(1)
     (metrics, result), = learned_rollouts(model, config.graph, [trajectory], tmp_path / "cache", [FRAMES])
     assert np.isfinite(result.positions).all() and metrics["unstable_step"] is None
     assert metrics["rest_rel_all"] > 0.01  # the beam swings: no motion is far off
