@@ -49,18 +49,25 @@ def test_training_steps_on_cuda_match_the_cpu(tiny_dataset, tmp_path, amp):
     gpu = trainer_on(DEVICE, tiny_dataset, tmp_path / "gpu", amp=amp)
     assert all(t.device.type == torch.device(DEVICE).type for t in [*gpu.model.parameters(), *gpu.model.buffers()])
     batch = Batch.from_data_list([cpu.train_set[(i, (0, 0, i))] for i in range(2)])
-    # the first step's loss and (clipped) gradients, from the same weights and batch; bfloat16
-    # autocast keeps ~3 significant digits, float32 differs in the last bits (sums in another order)
-    tolerance = 3e-2 if amp else 1e-4
-    assert gpu.train_step(batch.clone()) == pytest.approx(cpu.train_step(batch.clone()), rel=tolerance)
-    for (name, p_cpu), p_gpu in zip(cpu.model.named_parameters(), gpu.model.parameters(), strict=True):
-        scale = float(p_cpu.grad.abs().max())
-        torch.testing.assert_close(p_gpu.grad.cpu(), p_cpu.grad, rtol=tolerance, atol=tolerance * scale,
-                                   msg=lambda m, name=name: f"gradient of {name}: {m}")
+    # the first step's loss and (clipped) gradients, from the same weights and batch. float32:
+    # the GPU differs in the last bits (sums in another order; measured 6e-7 of a gradient's
+    # scale on an H200). bfloat16 autocast keeps ~3 significant digits: single gradient entries
+    # move by up to ~20% of their tensor's scale on a CPU as on a GPU (measured), so the whole
+    # gradient is compared (a CPU's bfloat16 errs 2.3% of its norm; loss 1e-3 relative)
+    loss_gpu, loss_cpu = gpu.train_step(batch.clone()), cpu.train_step(batch.clone())
+    assert loss_gpu == pytest.approx(loss_cpu, rel=5e-3 if amp else 1e-6)
+    if amp:
+        grads = [torch.cat([p.grad.cpu().ravel() for p in m.parameters()]) for m in (gpu.model, cpu.model)]
+        assert float((grads[0] - grads[1]).norm() / grads[1].norm()) < 0.1
+    else:
+        for (name, p_cpu), p_gpu in zip(cpu.model.named_parameters(), gpu.model.parameters(), strict=True):
+            scale = float(p_cpu.grad.abs().max())
+            torch.testing.assert_close(p_gpu.grad.cpu(), p_cpu.grad, rtol=1e-4, atol=5e-6 * scale,
+                                       msg=lambda m, name=name: f"gradient of {name}: {m}")
     for name, value in cpu.model.state_dict().items():
         if "normalizer" in name:  # statistics are float64 sums of the same inputs
             torch.testing.assert_close(gpu.model.state_dict()[name].cpu(), value, rtol=1e-6, atol=0)
-    assert gpu.validate() == pytest.approx(cpu.validate(), rel=tolerance)
+    assert gpu.validate() == pytest.approx(cpu.validate(), rel=3e-2 if amp else 1e-4)
     gpu.fit()  # the loop, validation and checkpoints on the GPU
     model, _, state = load_model(gpu.run_dir, "latest")  # read back on the CPU, weights_only
     assert state["step"] == 4 and all(p.device.type == "cpu" for p in model.parameters())
