@@ -71,6 +71,20 @@ def test_sampling_is_seeded_and_differs_between_indices():
     assert trajectory_config(dconfig, "train", 3) != trajectory_config(dconfig, "test", 3)
 
 
+def test_press_deep_xl_extends_press_deep():
+    """press_deep_xl only adds training trajectories: the trajectories the two share are the same
+    simulations (its config tells users to hard-link them), and the rest are new."""
+    small, large = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in ("press_deep", "press_deep_xl"))
+    assert {k: v for k, v in large.items() if k not in ("dataset", "splits")} == \
+        {k: v for k, v in small.items() if k not in ("dataset", "splits")}
+    assert large["splits"]["train"] == 2 * small["splits"]["train"]
+    for split in ("train", "valid", "test"):
+        for k in (0, small["splits"][split] - 1):
+            assert trajectory_config(large, split, k) == trajectory_config(small, split, k)
+    assert trajectory_config(large, "train", small["splits"]["train"]) not in \
+        [trajectory_config(small, "train", k) for k in range(small["splits"]["train"])]
+
+
 def test_disks_start_apart_and_inside_the_box():
     dconfig = load_dataset_config(CONFIGS / "disks.yaml")
     for index in range(50):
