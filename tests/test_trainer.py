@@ -212,11 +212,19 @@ def test_checkpoint_reproduces_predictions_in_a_fresh_process(tiny_dataset, fold
     graph = trainer.valid_set[2]
     model, config, state = load_model(tmp_path / "tiny")
     assert state["step"] == 6 and config.model.name == "bsms_gnn"
-    with torch.no_grad():
-        here = model.velocity_change(graph)
+    # both processes on one thread: the comparison is bitwise, and a float32 sum split over
+    # threads differs with the thread count (earlier tests may leave this process on another)
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with torch.no_grad():
+            here = model.velocity_change(graph)
+    finally:
+        torch.set_num_threads(before)
     torch.save(here, tmp_path / "here.pt")
     script = (
         "import sys, torch\n"
+        "torch.set_num_threads(1)\n"
         "from bsms.data import FrameDataset\n"
         "from bsms.run import load_model, split_files\n"
         "model, config, _ = load_model(sys.argv[1])\n"
