@@ -129,6 +129,7 @@ class Scenario:
     type_codes: np.ndarray | None = None
     obstacle_geometry: Subdivision | None = field(default=None, repr=False)
     penetration: Penetration | None = field(default=None, repr=False)
+    loss_weight: float | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, mesh, options: GraphOptions, *, frame_dt: float, node_type=None, body_id=None,
@@ -233,6 +234,8 @@ class Scenario:
             arrays["fields"] = np.asarray(fields)[nodes]
         if self.type_codes is not None:
             arrays["type_code"] = self.type_codes[nodes]
+        if self.loss_weight is not None:
+            arrays["loss_weight"] = np.full(len(nodes), self.loss_weight)
         if len(self.constants):
             arrays["constants"] = np.broadcast_to(self.constants, (len(nodes), len(self.constants)))
         if self.options.penetration:
@@ -280,7 +283,7 @@ class FrameDataset(NumberedSamples):
     """
 
     def __init__(self, files, options: GraphOptions, noise: NoiseOptions | None = None, cache_dir=None,
-                 progress: bool = False, mirror: bool = False):
+                 progress: bool = False, mirror: bool = False, loss_weight: str = "uniform"):
         self.files = [str(f) for f in files]
         if not self.files:
             raise ValueError("FrameDataset needs at least one trajectory file")
@@ -308,6 +311,26 @@ class FrameDataset(NumberedSamples):
         self.dim = self.spec.dim
         counts = [len(p) - 1 for p in (self.positions or self.states)]
         self._starts = np.concatenate([[0], np.cumsum(counts)])
+        if loss_weight == "motion":
+            self._weigh_by_motion()
+        elif loss_weight != "uniform":
+            raise ConfigError(f"config key 'train.loss_weight' must be 'uniform' or 'motion', got {loss_weight!r}")
+
+    def _weigh_by_motion(self) -> None:
+        """Each trajectory's loss weight 1 / s^2 (``train.loss_weight: motion``): s its at-rest
+        error (RMS distance of the free nodes from frame 0 over frames 1..T-1), floored at a
+        quarter of the median; scaled so that the weights average 1 over the samples."""
+        if self.states:
+            raise ConfigError(f"config key 'train.loss_weight' 'motion' needs Lagrangian data; {self.files[0]} "
+                              f"holds {self.spec.describe()} (use 'uniform')")
+        scales = np.array([np.sqrt(np.mean(np.square(p[1:, sc.node_type == NodeType.FREE] -
+                                                     p[:1, sc.node_type == NodeType.FREE]).sum(-1)))
+                           for p, sc in zip(self.positions, self.scenarios, strict=True)])
+        weights = 1.0 / np.maximum(scales, 0.25 * np.median(scales)) ** 2
+        counts = np.diff(self._starts)
+        weights /= np.sum(weights * counts) / np.sum(counts)
+        for scenario, weight in zip(self.scenarios, weights, strict=True):
+            scenario.loss_weight = float(weight)
 
     def _spec(self, trajectory, source: str) -> FieldSpec:
         """The field spec of one file, the same as the others'; the options checked against it."""

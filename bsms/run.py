@@ -173,7 +173,13 @@ class TrainConfig:
     scenes symmetric under it: gravity along y, isotropic materials). trajectories: train on the
     first this many training trajectories only (null: all of them), for learning curves.
     tensorboard: also write the training log as TensorBoard event files to
-    ``<run>/tensorboard/`` (:mod:`bsms.training_log`; needs ``pip install "bsms[tensorboard]"``)."""
+    ``<run>/tensorboard/`` (:mod:`bsms.training_log`; needs ``pip install "bsms[tensorboard]"``).
+    loss_weight: how the training trajectories weigh in the loss: ``uniform`` (every free node
+    alike), or ``motion`` (Lagrangian data: each trajectory's nodes weighted by 1 / s^2, s its
+    at-rest error, the RMS distance of its free nodes from frame 0 over all frames, floored at a
+    quarter of the median s; weights scaled to mean 1 over the samples), so that the loss
+    weighs each trajectory's error against its own motion as ``vs_rest`` does (:mod:`bsms.motion`)
+    and bodies that hardly move are not drowned by those that move far."""
 
     steps: int = 10_000
     batch_size: int = 2
@@ -194,6 +200,7 @@ class TrainConfig:
     mirror: bool = False
     trajectories: int | None = None
     tensorboard: bool = False
+    loss_weight: Literal["uniform", "motion"] = "uniform"
 
     def validate(self, prefix: str) -> None:
         if self.trajectories is not None and self.trajectories < 1:

@@ -170,7 +170,8 @@ class Trainer:
         self.dataset_folder = Path(self._dataset_folder(dataset_folder, base, progress))
         cache = self.dataset_folder / "hierarchies"
         self.train_set = FrameDataset(self._train_files(), config.graph, config.noise,
-                                      cache_dir=cache, progress=progress, mirror=config.train.mirror)
+                                      cache_dir=cache, progress=progress, mirror=config.train.mirror,
+                                      loss_weight=config.train.loss_weight)
         self.valid_set = FrameDataset(split_files(self.dataset_folder, "valid"), config.graph, cache_dir=cache,
                                       progress=progress)
         if config.train.validation == "rollout" and not self.valid_set.spec.is_lagrangian:

@@ -184,7 +184,10 @@ class LearnedSimulator(nn.Module):
     def prediction_loss(self, prediction: Tensor, graph: LevelGraph, reduction: str = "mean") -> Tensor:
         """The loss of :meth:`loss` of a ``prediction`` (N, node_out) already made of ``graph``
         (multi-step training, :mod:`bsms.unroll`, goes on from the prediction it scores)."""
-        error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)[graph.loss_mask]
+        error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)
+        if "loss_weight" in graph:  # train.loss_weight (bsms.data.FrameDataset)
+            error = error * graph.loss_weight
+        error = error[graph.loss_mask]
         return error.sum() if reduction == "sum" else error.mean()
 
     @torch.no_grad()
