@@ -29,6 +29,8 @@ import torch
 
 from . import interrupts
 from .config import ConfigError, read_yaml, reject_unknown
+from .csmpm.scenes import GAS_SCENES
+from .csmpm.scenes import simulate as simulate_gas
 from .layer import ExtendedMesh, with_extra_layer
 from .mpm import linalg
 from .mpm.boundary import grid_conditions, mesh_conditions
@@ -397,8 +399,12 @@ def simulate(config) -> Trajectory:
     """Run ``config`` (a dict or a YAML path) and return its :class:`Trajectory`.
 
     solver.threads, if set, is the number of torch CPU threads for this run (restored after);
-    on small problems or a busy machine one thread is often fastest.
+    on small problems or a busy machine one thread is often fastest. The gas scenes of
+    :mod:`datagen.csmpm.scenes` (``shock_tube``) run on CSMPM's grid solver instead.
     """
+    config = _load(config)
+    if config.get("scene") in GAS_SCENES:  # CSMPM's gas on its grid (datagen.csmpm)
+        return simulate_gas(config)
     config = resolve_config(config)
     threads, before = config["solver"]["threads"], torch.get_num_threads()
     if threads:

@@ -34,6 +34,8 @@ SCENES = {
 def get_scene(name):
     """The scene module registered as ``name``; ConfigError naming the choices otherwise."""
     if not isinstance(name, str) or name not in SCENES:
+        from ..csmpm.scenes import GAS_SCENES
+
         raise ConfigError(f"unknown scene {name!r} (config key 'scene'); "
-                          f"choose one of {', '.join(sorted(SCENES))}")
+                          f"choose one of {', '.join(sorted(SCENES) + sorted(GAS_SCENES))}")
     return SCENES[name]

@@ -1,0 +1,1 @@
+"""CSMPM (thesis chapter 3): compressible gas on a regular grid (:mod:`.euler`, :mod:`.gas`)."""

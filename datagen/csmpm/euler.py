@@ -1,0 +1,239 @@
+"""Compressible Euler on a regular grid: CSMPM's gas (thesis §3.2.3–3.2.5), without solids yet.
+
+A step splits the Euler equations as Kwatra et al. (2009) do:
+
+1. **Advection** of the conserved variables (rho, rho u, rho E) by the flow alone (thesis eqs.
+   3.10–3.12): the flux u_n U along each axis, reconstructed by second-order WENO (two
+   two-point stencils, Jiang–Shu weights) with local Lax–Friedrichs flux splitting whose speed is
+   the largest |u_n| of the stencil, integrated by SSP-RK2 (Heun). No pressure enters, so
+   the step's stability is set by the flow speed, not the sound speed.
+2. **Pressure** (eqs. 3.21–3.22): p* from the equation of state of the advected state, then the
+   SPD system  p / (rho c^2 dt^2) - div(grad p / rho_f) = p* / (rho c^2 dt^2) - div(u*_f) / dt
+   on the cells (rho c^2 of the step's start, rho_f face averages, u*_f face velocities: the
+   average of the two cells), solved by Jacobi-preconditioned CG.
+3. **Correction**: face velocities u_f = u*_f - dt grad_f p / rho_f; cell momentum by the
+   difference of face pressures (the mean of the two cells), energy by the face fluxes p_f u_f.
+
+Every update is a difference of face fluxes, so mass and energy in a closed box are conserved
+to round-off (walls: no flux; their faces carry only the wall's pressure force on momentum).
+
+Boundaries per axis end: ``wall`` (reflective: ghost cells mirror the state with the normal
+velocity negated; face velocity 0, zero pressure gradient) or ``open`` (ghost cells copy the
+edge cell; the face velocity is the edge cell's, the face pressure its pressure).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import LinearOperator, cg
+
+from .gas import GAMMA, pressure, sound_speed
+
+__all__ = ["Grid", "BOUNDARIES", "advective_flux", "advect", "project", "step", "time_step", "StepInfo"]
+
+BOUNDARIES = ("wall", "open")
+EPSILON = 1e-6  # the WENO weights' guard against division by zero
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A regular grid of cells: ``shape`` cells per axis, square cells of side ``dx``, and per
+    axis the (low, high) boundaries, each ``wall`` or ``open``."""
+
+    shape: tuple[int, ...]
+    dx: float
+    boundaries: tuple[tuple[str, str], ...]
+
+    def __post_init__(self):
+        if len(self.boundaries) != len(self.shape) or any(len(b) != 2 for b in self.boundaries):
+            raise ValueError(f"boundaries must give (low, high) for each of the {len(self.shape)} axes, "
+                             f"got {self.boundaries}")
+        bad = [b for pair in self.boundaries for b in pair if b not in BOUNDARIES]
+        if bad:
+            raise ValueError(f"unknown boundary {bad[0]!r}; choose one of {', '.join(BOUNDARIES)}")
+        if min(self.shape) < 2 or not self.dx > 0:
+            raise ValueError(f"a grid needs >= 2 cells per axis and dx > 0, got shape {self.shape}, dx {self.dx}")
+
+    @property
+    def dim(self) -> int:
+        return len(self.shape)
+
+
+@dataclass(frozen=True)
+class StepInfo:
+    """What a step did: the time step, CG iterations of the pressure solve and its final
+    relative residual."""
+
+    dt: float
+    cg_iterations: int
+    residual: float
+
+
+def _ghosts(state: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
+    """``state`` (k, *cells) padded by two ghost cells at both ends of ``axis``."""
+    a = axis + 1
+    parts = []
+    for side, (index, order) in zip(grid.boundaries[axis], ((slice(0, 2), slice(None, None, -1)),
+                                                           (slice(-2, None), slice(None, None, -1))), strict=True):
+        take = [slice(None)] * state.ndim
+        if side == "wall":
+            take[a] = index
+            ghost = state[tuple(take)][(slice(None),) * a + (order,)].copy()
+            ghost[1 + axis] *= -1.0  # the normal momentum
+        else:
+            take[a] = slice(0, 1) if index.start == 0 else slice(-1, None)
+            ghost = np.repeat(state[tuple(take)], 2, axis=a)
+        parts.append(ghost)
+    return np.concatenate([parts[0], state, parts[1]], axis=a)
+
+
+def _weno(minus, centre, plus) -> np.ndarray:
+    """Second-order WENO value at the face between ``centre`` and ``plus``, upwind from
+    ``minus``'s side: stencils (minus, centre) and (centre, plus), linear weights 1/3, 2/3."""
+    q0, q1 = 1.5 * centre - 0.5 * minus, 0.5 * (centre + plus)
+    a0 = (1.0 / 3.0) / (EPSILON + (centre - minus) ** 2) ** 2
+    a1 = (2.0 / 3.0) / (EPSILON + (plus - centre) ** 2) ** 2
+    return (a0 * q0 + a1 * q1) / (a0 + a1)
+
+
+def advective_flux(state: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
+    """(k, ..., n + 1, ...) WENO-LLF fluxes u_n U through the faces normal to ``axis`` (face j
+    between cells j - 1 and j; walls carry none)."""
+    padded = _ghosts(state, axis, grid)
+    a, n = axis + 1, grid.shape[axis]
+    velocity = padded[1 + axis] / padded[0]
+    flux = velocity * padded
+
+    def shifted(array, k):  # the stencil's k-th cell of every face: padded cells k .. k + n
+        index = [slice(None)] * array.ndim
+        index[array.ndim - grid.dim + axis] = slice(k, k + n + 1)
+        return array[tuple(index)]
+
+    speed = np.max(np.abs(np.stack([shifted(velocity, k) for k in range(4)])), axis=0)
+    plus = [0.5 * (shifted(flux, k) + speed * shifted(padded, k)) for k in range(3)]
+    minus = [0.5 * (shifted(flux, k) - speed * shifted(padded, k)) for k in (3, 2, 1)]
+    faces = _weno(*plus) + _weno(*minus)
+    for end, side in zip((0, n), grid.boundaries[axis], strict=True):
+        if side == "wall":
+            index = [slice(None)] * faces.ndim
+            index[a] = end
+            faces[tuple(index)] = 0.0
+    return faces
+
+
+def _divergence(faces: list[np.ndarray], grid: Grid) -> np.ndarray:
+    """Cell sums of face values (one array per axis, n + 1 faces along it) out minus in, over dx."""
+    total = 0.0
+    for axis, f in enumerate(faces):
+        a = f.ndim - grid.dim + axis
+        total = total + (np.take(f, np.arange(1, grid.shape[axis] + 1), axis=a) -
+                         np.take(f, np.arange(grid.shape[axis]), axis=a))
+    return total / grid.dx
+
+
+def _rate(state: np.ndarray, grid: Grid) -> np.ndarray:
+    return -_divergence([advective_flux(state, axis, grid) for axis in range(grid.dim)], grid)
+
+
+def advect(state: np.ndarray, grid: Grid, dt: float) -> np.ndarray:
+    """The state after advection by the flow over dt (SSP-RK2)."""
+    first = state + dt * _rate(state, grid)
+    return 0.5 * (state + first + dt * _rate(first, grid))
+
+
+def _faces(cells: np.ndarray, axis: int, grid: Grid, boundary: str) -> np.ndarray:
+    """(..., n + 1, ...) face values of a cell field along ``axis``: interior faces the mean of
+    their two cells; boundary faces the edge cell's value, or 0 at walls where ``boundary`` is
+    ``zero_at_walls``."""
+    a = cells.ndim - grid.dim + axis
+    n = grid.shape[axis]
+    inner = 0.5 * (np.take(cells, np.arange(n - 1), axis=a) + np.take(cells, np.arange(1, n), axis=a))
+    ends = []
+    for index, side in zip((0, n - 1), grid.boundaries[axis], strict=True):
+        end = np.take(cells, [index], axis=a)
+        ends.append(np.zeros_like(end) if side == "wall" and boundary == "zero_at_walls" else end)
+    return np.concatenate([ends[0], inner, ends[1]], axis=a)
+
+
+def _laplacian(density: np.ndarray, grid: Grid) -> sp.csr_matrix:
+    """The SPD matrix of -div(grad p / rho_f) over the cells (boundary faces: no gradient)."""
+    size = int(np.prod(grid.shape))
+    ids = np.arange(size).reshape(grid.shape)
+    rows, cols, values = [], [], []
+    for axis in range(grid.dim):
+        n = grid.shape[axis]
+        left = np.take(ids, np.arange(n - 1), axis=axis).ravel()
+        right = np.take(ids, np.arange(1, n), axis=axis).ravel()
+        w = 2.0 / (density.ravel()[left] + density.ravel()[right]) / grid.dx ** 2
+        rows += [left, right, left, right]
+        cols += [left, right, right, left]
+        values += [w, w, -w, -w]
+    return sp.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+
+
+def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gamma: float = GAMMA,
+            rtol: float = 1e-10) -> tuple[np.ndarray, int, float]:
+    """The state after the pressure solve and correction (module docstring, steps 2-3) of the
+    ``advected`` state; rho c^2 from ``before`` (the step's start). Returns (state, CG
+    iterations, relative residual)."""
+    rho = advected[0]
+    p_star = pressure(advected, gamma)
+    stiffness = before[0] * sound_speed(before[0], pressure(before, gamma), gamma) ** 2  # rho c^2
+    velocity = advected[1:-1] / rho
+    u_faces = [_faces(velocity[axis], axis, grid, "zero_at_walls") for axis in range(grid.dim)]
+    diagonal = (1.0 / (stiffness * dt ** 2)).ravel()
+    matrix = (_laplacian(rho, grid) + sp.diags(diagonal)).tocsr()
+    rhs = diagonal * p_star.ravel() - _divergence(u_faces, grid).ravel() / dt
+    inverse = 1.0 / matrix.diagonal()
+    iterations = [0]
+
+    def count(_):
+        iterations[0] += 1
+
+    solution, failed = cg(matrix, rhs, x0=p_star.ravel(), rtol=rtol, atol=0.0, maxiter=10 * rhs.size,
+                          M=LinearOperator(matrix.shape, lambda v: inverse * v), callback=count)
+    if failed:
+        raise RuntimeError(f"the pressure solve did not converge in {failed} CG iterations (dt {dt:g})")
+    residual = float(np.linalg.norm(matrix @ solution - rhs) / max(np.linalg.norm(rhs), 1e-300))
+    p = solution.reshape(grid.shape)
+    out = advected.copy()
+    energy_flux = []
+    for axis in range(grid.dim):
+        a, n = axis, grid.shape[axis]
+        gradient = (np.take(p, np.arange(1, n), axis=a) - np.take(p, np.arange(n - 1), axis=a)) / grid.dx
+        rho_f = 0.5 * (np.take(rho, np.arange(n - 1), axis=a) + np.take(rho, np.arange(1, n), axis=a))
+        u_f = u_faces[axis].copy()
+        inner = [slice(None)] * grid.dim
+        inner[a] = slice(1, n)
+        u_f[tuple(inner)] -= dt * gradient / rho_f
+        p_f = _faces(p, axis, grid, "edge")
+        out[1 + axis] -= dt * _divergence_along(p_f, axis, grid)
+        energy_flux.append(p_f * u_f)
+    out[-1] -= dt * _divergence(energy_flux, grid)
+    return out, iterations[0], residual
+
+
+def _divergence_along(faces: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
+    n = grid.shape[axis]
+    return (np.take(faces, np.arange(1, n + 1), axis=axis) - np.take(faces, np.arange(n), axis=axis)) / grid.dx
+
+
+def time_step(state: np.ndarray, grid: Grid, cfl: float = 0.5, acoustic: float = 0.0, gamma: float = GAMMA) -> float:
+    """cfl dx / max over cells and axes of (|u_n| + acoustic c): with ``acoustic`` 0 the flow
+    speed alone limits the step (the semi-implicit pressure is stable at any sound speed);
+    infinite where nothing moves and ``acoustic`` is 0 (the caller caps it)."""
+    rho, momentum = state[0], state[1:-1]
+    speed = np.max(np.abs(momentum) / rho, axis=0)
+    if acoustic > 0:
+        speed = speed + acoustic * sound_speed(rho, pressure(state, gamma), gamma)
+    fastest = float(speed.max())
+    return cfl * grid.dx / fastest if fastest > 0 else float("inf")
+
+
+def step(state: np.ndarray, grid: Grid, dt: float, gamma: float = GAMMA) -> tuple[np.ndarray, StepInfo]:
+    """One step of dt: advection, then the pressure solve and correction."""
+    new, iterations, residual = project(advect(state, grid, dt), state, grid, dt, gamma)
+    return new, StepInfo(dt, iterations, residual)
