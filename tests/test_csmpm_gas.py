@@ -194,3 +194,21 @@ def test_shock_tube_takes_any_riemann_problem_and_refuses_bad_input():
             datagen.simulate({"scene": "shock_tube", "params": params})
     with pytest.raises(ConfigError, match="unknown"):
         datagen.simulate({"scene": "shock_tube", "solver": {"kernel": "umls"}})
+
+
+def test_circular_shock_runs_through_simulate_on_a_triangulated_grid():
+    t = datagen.simulate({"scene": "circular_shock", "params": {"cells": 16, "radius": 0.5},
+                          "output": {"frames": 2, "frame_interval": 0.05}})
+    assert t.fields["x"].shape == (256, 2) and t.fields["velocity"].shape == (3, 256, 2)
+    assert t.fields["density"].shape == t.fields["pressure"].shape == (3, 256)
+    assert t.mesh.n_nodes == 256 and len(t.mesh.cells) == 2 * 15 * 15
+    np.testing.assert_allclose(t.mesh.cell_measures, (2.0 / 16) ** 2 / 2, rtol=1e-12)
+    np.testing.assert_array_equal(t.positions[0], t.fields["x"])
+    mass = t.diagnostics["mass"]
+    assert np.abs(mass - mass[0]).max() <= 1e-14 * mass[0] and t.diagnostics["cg_iterations"][0] == 0
+    inside = np.sum((t.fields["x"] - 1.0) ** 2, axis=1) < 0.25
+    assert np.all(t.fields["pressure"][0][inside] == 1.0) and np.all(t.fields["pressure"][0][~inside] == 0.1)
+    with pytest.raises(ConfigError, match=re.escape("'params.radius' must be less than half the box")):
+        datagen.simulate({"scene": "circular_shock", "params": {"radius": 1.0}})
+    with pytest.raises(ConfigError, match=re.escape("'params.inside' must be [density, pressure]")):
+        datagen.simulate({"scene": "circular_shock", "params": {"inside": [1.0, 0.0, 1.0]}})

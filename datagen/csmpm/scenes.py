@@ -1,4 +1,4 @@
-"""Gas scenes of CSMPM run by :func:`datagen.simulate`: ``shock_tube`` so far.
+"""Gas scenes of CSMPM run by :func:`datagen.simulate`: ``shock_tube`` and ``circular_shock``.
 
 ``shock_tube``: any 1D Riemann problem on a tube of ``cells`` cells over ``length``:
 ``left`` = [rho, u, p] for x < ``interface``, ``right`` for x > it, ideal gas ``gamma``,
@@ -10,6 +10,12 @@ allows, each step then capped by the frame interval). The Trajectory's ``fields`
 are the cell centres (a fixed 1D mesh), its velocities the gas velocity; diagnostics per frame:
 ``mass``, ``momentum``, ``energy`` (per unit cross-section) and ``cg_iterations`` (the most of
 any step reaching the frame).
+
+``circular_shock`` (Kwatra et al. 2009's central circular shock): a square box of side
+``length`` with ``cells`` cells per side and walls all round; gas ``inside`` = [rho, p] within
+``radius`` of the centre, ``outside`` elsewhere, at rest. Its fields: ``x`` (N, 2) cell centres
+(row-major over x then y), ``density`` and ``pressure`` (frames + 1, N), ``velocity`` (frames + 1,
+N, 2); its mesh triangulates the cell centres (two triangles per square of four).
 """
 
 from __future__ import annotations
@@ -26,11 +32,16 @@ from . import euler, gas
 
 __all__ = ["GAS_SCENES", "resolve", "simulate"]
 
-GAS_SCENES = ("shock_tube",)
-DEFAULTS = {"left": [1.0, 0.0, 1.0], "right": [0.125, 0.0, 0.1], "cells": 400, "length": 1.0, "interface": 0.5,
-            "gamma": gas.GAMMA, "boundaries": "open"}
+GAS_SCENES = ("shock_tube", "circular_shock")
+DEFAULTS = {
+    "shock_tube": {"left": [1.0, 0.0, 1.0], "right": [0.125, 0.0, 0.1], "cells": 400, "length": 1.0,
+                   "interface": 0.5, "gamma": gas.GAMMA, "boundaries": "open"},
+    "circular_shock": {"inside": [1.0, 1.0], "outside": [0.125, 0.1], "radius": 0.4, "cells": 128, "length": 2.0,
+                       "gamma": gas.GAMMA},
+}
 SOLVER = {"cfl": 0.5, "acoustic": 1.0, "max_substeps": 100_000}
-OUTPUT = {"frames": 20, "frame_interval": 0.01}
+OUTPUT = {"shock_tube": {"frames": 20, "frame_interval": 0.01},
+          "circular_shock": {"frames": 10, "frame_interval": 0.025}}
 
 
 def _number(value, key: str, *, low=None, integer=False) -> float:
@@ -43,13 +54,14 @@ def _number(value, key: str, *, low=None, integer=False) -> float:
     return value
 
 
-def _state(value, key: str) -> list[float]:
-    if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise ConfigError(f"config key '{key}' must be [density, velocity, pressure], got {value!r}")
-    rho, u, p = (float(_number(v, f"{key}[{i}]")) for i, v in enumerate(value))
-    if not (rho > 0 and p > 0):
+def _state(value, key: str, with_velocity: bool = True) -> list[float]:
+    names = "[density, velocity, pressure]" if with_velocity else "[density, pressure]"
+    if not isinstance(value, (list, tuple)) or len(value) != (3 if with_velocity else 2):
+        raise ConfigError(f"config key '{key}' must be {names}, got {value!r}")
+    values = [float(_number(v, f"{key}[{i}]")) for i, v in enumerate(value)]
+    if not (values[0] > 0 and values[-1] > 0):
         raise ConfigError(f"config key '{key}' needs positive density and pressure, got {value!r}")
-    return [rho, u, p]
+    return values
 
 
 def _section(config: dict, name: str, defaults: dict) -> dict:
@@ -60,21 +72,36 @@ def _section(config: dict, name: str, defaults: dict) -> dict:
     return {**defaults, **given}
 
 
-def resolve(config: dict) -> dict:
-    """The full config of a gas scene (defaults filled in, every value checked)."""
-    reject_unknown(config, {"scene", "params", "solver", "output", "seed"})
-    p, s, o = (_section(config, n, d) for n, d in (("params", DEFAULTS), ("solver", SOLVER), ("output", OUTPUT)))
-    p["left"], p["right"] = _state(p["left"], "params.left"), _state(p["right"], "params.right")
+def _params(name: str, p: dict) -> dict:
+    """Scene ``name``'s params checked (types, ranges)."""
     p["cells"] = _number(p["cells"], "params.cells", low=7, integer=True)
     p["length"] = float(_number(p["length"], "params.length", low=0))
+    p["gamma"] = float(_number(p["gamma"], "params.gamma", low=1))
+    if name == "circular_shock":
+        p["inside"], p["outside"] = (_state(p[k], f"params.{k}", False) for k in ("inside", "outside"))
+        p["radius"] = float(_number(p["radius"], "params.radius", low=0))
+        if not p["radius"] < p["length"] / 2:
+            raise ConfigError(f"config key 'params.radius' must be less than half the box (params.length / 2 = "
+                              f"{p['length'] / 2:g}), got {p['radius']!r}")
+        return p
+    p["left"], p["right"] = _state(p["left"], "params.left"), _state(p["right"], "params.right")
     p["interface"] = float(_number(p["interface"], "params.interface"))
     if not 0 < p["interface"] < p["length"]:
         raise ConfigError(f"config key 'params.interface' must lie inside the tube (0, {p['length']:g}), "
                           f"got {p['interface']!r}")
-    p["gamma"] = float(_number(p["gamma"], "params.gamma", low=1))
     if p["boundaries"] not in euler.BOUNDARIES:
         raise ConfigError(f"config key 'params.boundaries' must be one of {', '.join(euler.BOUNDARIES)}, "
                           f"got {p['boundaries']!r}")
+    return p
+
+
+def resolve(config: dict) -> dict:
+    """The full config of a gas scene (defaults filled in, every value checked)."""
+    reject_unknown(config, {"scene", "params", "solver", "output", "seed"})
+    name = config["scene"]
+    p, s, o = (_section(config, n, d) for n, d in (("params", DEFAULTS[name]), ("solver", SOLVER),
+                                                    ("output", OUTPUT[name])))
+    p = _params(name, p)
     s["cfl"] = float(_number(s["cfl"], "solver.cfl", low=0))
     s["acoustic"] = float(_number(s["acoustic"], "solver.acoustic"))
     if s["acoustic"] < 0:
@@ -85,20 +112,35 @@ def resolve(config: dict) -> dict:
     seed = config.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ConfigError(f"config key 'seed' must be an integer, got {seed!r}")
-    return {"scene": config["scene"], "params": p, "solver": s, "output": o, "seed": seed}
+    return {"scene": name, "params": p, "solver": s, "output": o, "seed": seed}
+
+
+def _initial(name: str, p: dict) -> tuple[euler.Grid, np.ndarray, np.ndarray, Mesh]:
+    """(grid, conserved state, cell centres (N, d), mesh of the centres) of a scene's start."""
+    n, length = p["cells"], p["length"]
+    dx = length / n
+    centres = (np.arange(n) + 0.5) * dx
+    if name == "shock_tube":
+        grid = euler.Grid((n,), dx, ((p["boundaries"],) * 2,))
+        left = centres < p["interface"]
+        rho, u, pres = (np.where(left, a, b) for a, b in zip(p["left"], p["right"], strict=True))
+        mesh = Mesh(centres[:, None], np.stack([np.arange(n - 1), np.arange(1, n)], 1))
+        return grid, gas.conserved(rho, u[None], pres, p["gamma"]), centres[:, None], mesh
+    grid = euler.Grid((n, n), dx, (("wall", "wall"), ("wall", "wall")))
+    x, y = np.meshgrid(centres, centres, indexing="ij")
+    inside = (x - length / 2) ** 2 + (y - length / 2) ** 2 < p["radius"] ** 2
+    rho, pres = (np.where(inside, a, b) for a, b in zip(p["inside"], p["outside"], strict=True))
+    ids = np.arange(n * n).reshape(n, n)
+    a, b, c, d = ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(), ids[:-1, 1:].ravel()
+    mesh = Mesh(np.stack([x.ravel(), y.ravel()], 1), np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]))
+    return grid, gas.conserved(rho, np.zeros((2, n, n)), pres, p["gamma"]), mesh.nodes, mesh
 
 
 def simulate(config: dict) -> Trajectory:
     """Run a gas scene (a config dict whose ``scene`` is in :data:`GAS_SCENES`)."""
     config = resolve(config)
     p, s, o = config["params"], config["solver"], config["output"]
-    n, length = p["cells"], p["length"]
-    dx = length / n
-    x = (np.arange(n) + 0.5) * dx
-    grid = euler.Grid((n,), dx, ((p["boundaries"],) * 2,))
-    left = x < p["interface"]
-    primitive = [np.where(left, a, b) for a, b in zip(p["left"], p["right"], strict=True)]
-    state = gas.conserved(primitive[0], primitive[1][None], primitive[2], p["gamma"])
+    grid, state, x, mesh = _initial(config["scene"], p)
     frames, wall, substeps, times = [state], [0.0], 0, [0.0]
     t, iterations = 0.0, [0]
     for k in range(1, o["frames"] + 1):
@@ -110,25 +152,28 @@ def simulate(config: dict) -> Trajectory:
             t, steps, most = (end if dt == end - t else t + dt), steps + 1, max(most, info.cg_iterations)
             if steps > s["max_substeps"]:
                 raise ConfigError(f"frame {k} took more than solver.max_substeps ({s['max_substeps']:,}) steps; "
-                                  "raise it, or coarsen the tube (params.cells)")
+                                  "raise it, or coarsen the grid (params.cells)")
             if not np.all(np.isfinite(state)) or np.any(state[0] <= 0) or np.any(gas.pressure(state, p["gamma"]) <= 0):
-                raise RuntimeError(f"shock_tube: the gas state became non-physical (density or pressure <= 0) "
+                raise RuntimeError(f"{config['scene']}: the gas state became non-physical (density or pressure <= 0) "
                                    f"at t = {t:.6g} s, step {substeps + steps}; lower solver.cfl")
         wall.append(time.perf_counter() - start)
         substeps += steps
         iterations.append(most)
         frames.append(state)
         times.append(t)
-    stacked = np.stack(frames)  # (T, 3, N)
-    rho, velocity, pressure = stacked[:, 0], stacked[:, 1] / stacked[:, 0], gas.pressure(
-        np.moveaxis(stacked, 1, 0), p["gamma"])
-    mesh = Mesh(x[:, None], np.stack([np.arange(n - 1), np.arange(1, n)], 1))
-    diagnostics = {"mass": stacked[:, 0].sum(1) * dx, "momentum": stacked[:, 1].sum(1) * dx,
-                   "energy": stacked[:, 2].sum(1) * dx, "cg_iterations": np.array(iterations)}
+    stacked = np.stack(frames).reshape(len(frames), grid.dim + 2, -1)  # (T, d + 2, N)
+    volume = grid.dx ** grid.dim
+    rho = stacked[:, 0]
+    velocity = np.moveaxis(stacked[:, 1:-1] / rho[:, None], 1, -1)  # (T, N, d)
+    pressure = gas.pressure(np.moveaxis(stacked, 1, 0), p["gamma"])
+    diagnostics = {"mass": rho.sum(1) * volume, "momentum": stacked[:, 1:-1].sum(-1) * volume,
+                   "energy": stacked[:, -1].sum(1) * volume, "cg_iterations": np.array(iterations)}
+    n = len(x)
     return Trajectory(
-        mesh=mesh, positions=np.broadcast_to(x[None, :, None], (len(frames), n, 1)).copy(),
-        velocities=velocity[:, :, None].copy(), times=np.array(times), diagnostics=diagnostics,
+        mesh=mesh, positions=np.broadcast_to(x[None], (len(frames), n, grid.dim)).copy(),
+        velocities=velocity.copy(), times=np.array(times), diagnostics=diagnostics,
         wall_time=float(sum(wall)), config=config, dt=t / max(substeps, 1), substeps=substeps, n_particles=0,
         frame_wall_times=np.array(wall), node_type=np.full(n, NodeType.FREE, np.int64),
-        fields={"x": x, "density": rho, "velocity": velocity, "pressure": pressure},
+        fields={"x": x[:, 0].copy() if grid.dim == 1 else x.copy(), "density": rho,
+                "velocity": velocity[..., 0] if grid.dim == 1 else velocity, "pressure": pressure},
     )

@@ -1,0 +1,124 @@
+"""CSMPM's gas against closed forms and finer runs (thesis §3.3.1, Kwatra et al. 2009).
+
+1D: Sod's and Lax's shock tubes at ``--cells`` resolutions against (a) the exact Riemann
+solution (L1 density error) and (b) a ``--reference``-cell run: the squared density deviation
+e_dm = sum (rho - rho_b)^2 / (sum rho_b)^2 (thesis eq. 3.38), rho_b the reference averaged onto
+the coarse cells; the convergence order per case from the two finest resolutions.
+2D: the central circular shock at ``--circular`` resolutions against a ``--circular-reference``
+run (e_dm, its order). Orders are the slopes between the two finest resolutions; e_dm's
+normalisation by (sum rho_b)^2 and its square make its order about 2 x the L1 order + the
+dimension, so the L1 orders (against the exact solution in 1D, the reference run in 2D) are the
+ones comparable across cases; the last line gives those. Every run: the most CG iterations of
+any pressure solve. Solver: the scene defaults (CFL 0.5 on |u| + c). Ends with exactly
+``csmpm: sod L1 density error E at N cells (order p), circular shock order q, CG iterations max K``.
+
+    python benchmarks/csmpm_validation.py [--cells 128 256 512 1024 2048] [--reference 4096]
+        [--circular 64 128 256] [--circular-reference 512]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+import datagen  # noqa: E402
+from datagen.csmpm import gas  # noqa: E402
+
+TUBES = {  # name: (left, right, end time) on [0, 1], interface 0.5
+    "sod": ([1.0, 0.0, 1.0], [0.125, 0.0, 0.1], 0.2),
+    "lax": ([0.445, 0.698, 3.528], [0.5, 0.0, 0.571], 0.13),
+}
+
+
+def _tube(name: str, cells: int):
+    left, right, end = TUBES[name]
+    return datagen.simulate({"scene": "shock_tube", "params": {"left": left, "right": right, "cells": cells},
+                             "output": {"frames": 1, "frame_interval": end}})
+
+
+def _coarsen(field: np.ndarray, factor: int) -> np.ndarray:
+    """Block means of a (n,) or (n, n) cell field by ``factor`` per axis."""
+    if field.ndim == 1:
+        return field.reshape(-1, factor).mean(1)
+    n = field.shape[0] // factor
+    return field.reshape(n, factor, n, factor).mean(axis=(1, 3))
+
+
+def e_dm(rho: np.ndarray, reference: np.ndarray) -> float:
+    """Thesis eq. 3.38: sum (rho - rho_b)^2 / (sum rho_b)^2, rho_b the reference on rho's cells."""
+    rho_b = _coarsen(reference, reference.shape[0] // rho.shape[0])
+    return float(np.sum((rho - rho_b) ** 2) / np.sum(rho_b) ** 2)
+
+
+def l1_reference(rho: np.ndarray, reference: np.ndarray) -> float:
+    """Mean |rho - rho_b| over rho's cells, rho_b the reference averaged onto them."""
+    return float(np.mean(np.abs(rho - _coarsen(reference, reference.shape[0] // rho.shape[0]))))
+
+
+def _order(errors: list[float], cells: list[int]) -> float:
+    return float(np.log(errors[-2] / errors[-1]) / np.log(cells[-1] / cells[-2]))
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cells", type=int, nargs="+", default=[128, 256, 512, 1024, 2048])
+    parser.add_argument("--reference", type=int, default=4096)
+    parser.add_argument("--circular", type=int, nargs="+", default=[64, 128, 256])
+    parser.add_argument("--circular-reference", type=int, default=512)
+    args = parser.parse_args(argv)
+    cg_max, summary = 0, {}
+    print(f"{'case':<16}{'cells':>7}{'L1 exact':>12}{'L1 ref':>12}{'e_dm':>12}{'CG max':>8}{'steps':>8}{'s':>8}")
+    for name in TUBES:
+        reference = _tube(name, args.reference)
+        cg_max = max(cg_max, int(reference.diagnostics["cg_iterations"].max()))
+        l1, ref, dm = [], [], []
+        for cells in args.cells:
+            start = time.perf_counter()
+            t = _tube(name, cells)
+            seconds = time.perf_counter() - start
+            left, right, end = TUBES[name]
+            (exact, _, _), _ = gas.exact_riemann(left, right, t.fields["x"], end, interface=0.5)
+            rho = t.fields["density"][-1]
+            l1.append(float(np.abs(rho - exact).mean()))
+            dm.append(e_dm(rho, reference.fields["density"][-1]))
+            ref.append(l1_reference(rho, reference.fields["density"][-1]))
+            k = int(t.diagnostics["cg_iterations"].max())
+            cg_max = max(cg_max, k)
+            print(f"{name:<16}{cells:>7}{l1[-1]:>12.3e}{ref[-1]:>12.3e}{dm[-1]:>12.3e}{k:>8}{t.substeps:>8}"
+                  f"{seconds:>8.1f}")
+        summary[name] = (l1, dm)
+        print(f"{name}: order {_order(l1, args.cells):.2f} (L1 against the exact solution), "
+              f"{_order(ref, args.cells):.2f} (L1 against {args.reference} cells), "
+              f"{_order(dm, args.cells):.2f} (e_dm against {args.reference} cells)")
+    reference = datagen.simulate({"scene": "circular_shock", "params": {"cells": args.circular_reference}})
+    cg_max = max(cg_max, int(reference.diagnostics["cg_iterations"].max()))
+    n_ref = args.circular_reference
+    rho_ref = reference.fields["density"][-1].reshape(n_ref, n_ref)
+    dm, ref = [], []
+    for cells in args.circular:
+        start = time.perf_counter()
+        t = datagen.simulate({"scene": "circular_shock", "params": {"cells": cells}})
+        seconds = time.perf_counter() - start
+        rho = t.fields["density"][-1].reshape(cells, cells)
+        dm.append(e_dm(rho, rho_ref))
+        ref.append(l1_reference(rho, rho_ref))
+        k = int(t.diagnostics["cg_iterations"].max())
+        cg_max = max(cg_max, k)
+        print(f"{'circular_shock':<16}{cells:>7}{'-':>12}{ref[-1]:>12.3e}{dm[-1]:>12.3e}{k:>8}{t.substeps:>8}"
+              f"{seconds:>8.1f}")
+    circular_order = _order(ref, args.circular)
+    print(f"circular_shock: order {circular_order:.2f} (L1 against {n_ref}^2 cells), {_order(dm, args.circular):.2f} "
+          f"(e_dm against {n_ref}^2 cells)")
+    l1 = summary["sod"][0]
+    print(f"csmpm: sod L1 density error {l1[-1]:.3g} at {args.cells[-1]} cells (order {_order(l1, args.cells):.2f}), "
+          f"circular shock order {circular_order:.2f}, CG iterations max {cg_max}")
+
+
+if __name__ == "__main__":
+    main()
