@@ -18,8 +18,16 @@ Every update is a difference of face fluxes, so mass and energy in a closed box 
 to round-off (walls: no flux; their faces carry only the wall's pressure force on momentum).
 
 Boundaries per axis end: ``wall`` (reflective: ghost cells mirror the state with the normal
-velocity negated; face velocity 0, zero pressure gradient) or ``open`` (ghost cells copy the
-edge cell; the face velocity is the edge cell's, the face pressure its pressure).
+velocity negated; face velocity 0, zero pressure gradient), ``open`` (an outlet: ghost cells
+extrapolate the edge cell; the face velocity is the edge cell's, the face pressure its
+pressure) or ``inlet`` (ghost cells hold the grid's ``inflow`` state; its velocity and pressure
+act at the face: the thesis' §3.2.9 with a prescribed supersonic inflow).
+
+Static solid cells (``Grid.solid``, a boolean mask) are walls inside the domain: no advective
+flux crosses a face between gas and solid, a WENO stencil that reaches into a solid cell takes
+the value of the gas cell next to it on the face's side (the thesis' "reflection only at the
+evaluated interface"), their faces carry zero normal velocity into the pressure solve, and the
+gas cell's own pressure pushes on them. Solid cells keep their state.
 """
 
 from __future__ import annotations
@@ -34,18 +42,21 @@ from .gas import GAMMA, pressure, sound_speed
 
 __all__ = ["Grid", "BOUNDARIES", "advective_flux", "advect", "project", "step", "time_step", "StepInfo"]
 
-BOUNDARIES = ("wall", "open")
+BOUNDARIES = ("wall", "open", "inlet")
 EPSILON = 1e-6  # the WENO weights' guard against division by zero
 
 
 @dataclass(frozen=True)
 class Grid:
-    """A regular grid of cells: ``shape`` cells per axis, square cells of side ``dx``, and per
-    axis the (low, high) boundaries, each ``wall`` or ``open``."""
+    """A regular grid of cells: ``shape`` cells per axis, square cells of side ``dx``, per axis
+    the (low, high) boundaries, each ``wall``, ``open`` or ``inlet``; ``inflow``: the conserved
+    state (d + 2,) the inlets hold; ``solid``: a boolean mask of static solid cells (None: none)."""
 
     shape: tuple[int, ...]
     dx: float
     boundaries: tuple[tuple[str, str], ...]
+    inflow: np.ndarray | None = None
+    solid: np.ndarray | None = None
 
     def __post_init__(self):
         if len(self.boundaries) != len(self.shape) or any(len(b) != 2 for b in self.boundaries):
@@ -54,6 +65,12 @@ class Grid:
         bad = [b for pair in self.boundaries for b in pair if b not in BOUNDARIES]
         if bad:
             raise ValueError(f"unknown boundary {bad[0]!r}; choose one of {', '.join(BOUNDARIES)}")
+        if any(b == "inlet" for pair in self.boundaries for b in pair) and (
+                self.inflow is None or np.shape(self.inflow) != (len(self.shape) + 2,)):
+            raise ValueError(f"an inlet needs the inflow's conserved state ({len(self.shape) + 2} values), "
+                             f"got {self.inflow!r}")
+        if self.solid is not None and np.shape(self.solid) != tuple(self.shape):
+            raise ValueError(f"solid must be a mask of the {self.shape} cells, got shape {np.shape(self.solid)}")
         if min(self.shape) < 2 or not self.dx > 0:
             raise ValueError(f"a grid needs >= 2 cells per axis and dx > 0, got shape {self.shape}, dx {self.dx}")
 
@@ -83,6 +100,10 @@ def _ghosts(state: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
             take[a] = index
             ghost = state[tuple(take)][(slice(None),) * a + (order,)].copy()
             ghost[1 + axis] *= -1.0  # the normal momentum
+        elif side == "inlet":
+            take[a] = index
+            ghost = np.empty_like(state[tuple(take)])
+            ghost[...] = np.reshape(grid.inflow, (-1,) + (1,) * (state.ndim - 1))
         else:
             take[a] = slice(0, 1) if index.start == 0 else slice(-1, None)
             ghost = np.repeat(state[tuple(take)], 2, axis=a)
@@ -112,15 +133,29 @@ def advective_flux(state: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
         index[array.ndim - grid.dim + axis] = slice(k, k + n + 1)
         return array[tuple(index)]
 
-    speed = np.max(np.abs(np.stack([shifted(velocity, k) for k in range(4)])), axis=0)
-    plus = [0.5 * (shifted(flux, k) + speed * shifted(padded, k)) for k in range(3)]
-    minus = [0.5 * (shifted(flux, k) - speed * shifted(padded, k)) for k in (3, 2, 1)]
+    cells = [shifted(padded, k) for k in range(4)]
+    fluxes = [shifted(flux, k) for k in range(4)]
+    speeds = [shifted(velocity, k) for k in range(4)]
+    blocked = None
+    if grid.solid is not None:  # a stencil cell inside a solid takes its face-side gas neighbour's value
+        solid = np.pad(grid.solid, [(2, 2) if b == axis else (0, 0) for b in range(grid.dim)])
+        inside = [shifted(solid, k) for k in range(4)]
+        for outer, inner in ((0, 1), (3, 2)):
+            cells[outer] = np.where(inside[outer], cells[inner], cells[outer])
+            fluxes[outer] = np.where(inside[outer], fluxes[inner], fluxes[outer])
+            speeds[outer] = np.where(inside[outer], speeds[inner], speeds[outer])
+        blocked = inside[1] | inside[2]
+    speed = np.max(np.abs(np.stack(speeds)), axis=0)
+    plus = [0.5 * (fluxes[k] + speed * cells[k]) for k in range(3)]
+    minus = [0.5 * (fluxes[k] - speed * cells[k]) for k in (3, 2, 1)]
     faces = _weno(*plus) + _weno(*minus)
     for end, side in zip((0, n), grid.boundaries[axis], strict=True):
         if side == "wall":
             index = [slice(None)] * faces.ndim
             index[a] = end
             faces[tuple(index)] = 0.0
+    if blocked is not None:
+        faces[:, blocked] = 0.0
     return faces
 
 
@@ -144,49 +179,78 @@ def advect(state: np.ndarray, grid: Grid, dt: float) -> np.ndarray:
     return 0.5 * (state + first + dt * _rate(first, grid))
 
 
-def _faces(cells: np.ndarray, axis: int, grid: Grid, boundary: str) -> np.ndarray:
-    """(..., n + 1, ...) face values of a cell field along ``axis``: interior faces the mean of
-    their two cells; boundary faces the edge cell's value, or 0 at walls where ``boundary`` is
-    ``zero_at_walls``."""
-    a = cells.ndim - grid.dim + axis
-    n = grid.shape[axis]
-    inner = 0.5 * (np.take(cells, np.arange(n - 1), axis=a) + np.take(cells, np.arange(1, n), axis=a))
+def _pairs(array: np.ndarray, axis: int, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """The (n - 1) cells below and above each interior face along ``axis`` (last axes: the grid's)."""
+    a, n = array.ndim - grid.dim + axis, grid.shape[axis]
+    return np.take(array, np.arange(n - 1), axis=a), np.take(array, np.arange(1, n), axis=a)
+
+
+def _solid_sides(axis: int, grid: Grid):
+    """(below, above) solid masks of the interior faces along ``axis``, or None without solids."""
+    return None if grid.solid is None else _pairs(grid.solid, axis, grid)
+
+
+def _faces(cells: np.ndarray, axis: int, grid: Grid, kind: str) -> np.ndarray:
+    """(n + 1 along ``axis``) face values of a cell field of the grid's shape: ``velocity`` (the
+    normal velocity, cells' u_axis): the mean of the two cells, 0 at walls and solid faces, the
+    edge cell's at outlets, the inflow's at inlets; ``pressure``: the mean of two gas cells,
+    the gas cell's own at a solid face, the edge cell's at walls and outlets, the inflow's at inlets."""
+    below, above = _pairs(cells, axis, grid)
+    inner = 0.5 * (below + above)
+    sides = _solid_sides(axis, grid)
+    if sides is not None:
+        if kind == "velocity":
+            inner = np.where(sides[0] | sides[1], 0.0, inner)
+        else:
+            inner = np.where(sides[0], above, np.where(sides[1], below, inner))
     ends = []
-    for index, side in zip((0, n - 1), grid.boundaries[axis], strict=True):
-        end = np.take(cells, [index], axis=a)
-        ends.append(np.zeros_like(end) if side == "wall" and boundary == "zero_at_walls" else end)
-    return np.concatenate([ends[0], inner, ends[1]], axis=a)
+    for index, side in zip((0, grid.shape[axis] - 1), grid.boundaries[axis], strict=True):
+        end = np.take(cells, [index], axis=axis)
+        if side == "wall" and kind == "velocity":
+            end = np.zeros_like(end)
+        elif side == "inlet":
+            inflow = np.asarray(grid.inflow, np.float64)
+            end = np.full_like(end, inflow[1 + axis] / inflow[0] if kind == "velocity" else pressure(inflow))
+        ends.append(end)
+    return np.concatenate([ends[0], inner, ends[1]], axis=axis)
 
 
 def _laplacian(density: np.ndarray, grid: Grid) -> sp.csr_matrix:
-    """The SPD matrix of -div(grad p / rho_f) over the cells (boundary faces: no gradient)."""
+    """The matrix of -div(grad p / rho_f) over the cells: couplings across faces between two gas
+    cells (domain boundaries and solid faces: no gradient); symmetric positive semi-definite."""
     size = int(np.prod(grid.shape))
     ids = np.arange(size).reshape(grid.shape)
     rows, cols, values = [], [], []
     for axis in range(grid.dim):
-        n = grid.shape[axis]
-        left = np.take(ids, np.arange(n - 1), axis=axis).ravel()
-        right = np.take(ids, np.arange(1, n), axis=axis).ravel()
+        left, right = (i.ravel() for i in _pairs(ids, axis, grid))
         w = 2.0 / (density.ravel()[left] + density.ravel()[right]) / grid.dx ** 2
+        sides = _solid_sides(axis, grid)
+        if sides is not None:
+            w = np.where((sides[0] | sides[1]).ravel(), 0.0, w)
         rows += [left, right, left, right]
         cols += [left, right, right, left]
         values += [w, w, -w, -w]
-    return sp.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+    matrix = sp.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+    matrix.eliminate_zeros()
+    return matrix
 
 
 def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gamma: float = GAMMA,
             rtol: float = 1e-10) -> tuple[np.ndarray, int, float]:
     """The state after the pressure solve and correction (module docstring, steps 2-3) of the
     ``advected`` state; rho c^2 from ``before`` (the step's start). Returns (state, CG
-    iterations, relative residual)."""
+    iterations, relative residual). Solid cells keep their state (their pressure row: p = p*)."""
     rho = advected[0]
     p_star = pressure(advected, gamma)
     stiffness = before[0] * sound_speed(before[0], pressure(before, gamma), gamma) ** 2  # rho c^2
     velocity = advected[1:-1] / rho
-    u_faces = [_faces(velocity[axis], axis, grid, "zero_at_walls") for axis in range(grid.dim)]
+    u_faces = [_faces(velocity[axis], axis, grid, "velocity") for axis in range(grid.dim)]
     diagonal = (1.0 / (stiffness * dt ** 2)).ravel()
-    matrix = (_laplacian(rho, grid) + sp.diags(diagonal)).tocsr()
     rhs = diagonal * p_star.ravel() - _divergence(u_faces, grid).ravel() / dt
+    if grid.solid is not None:
+        solid = grid.solid.ravel()
+        diagonal, rhs = np.where(solid, 1.0, diagonal), np.where(solid, p_star.ravel(), rhs)
+    matrix = (_laplacian(rho, grid) + sp.diags(diagonal)).tocsr()
     inverse = 1.0 / matrix.diagonal()
     iterations = [0]
 
@@ -202,17 +266,22 @@ def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gam
     out = advected.copy()
     energy_flux = []
     for axis in range(grid.dim):
-        a, n = axis, grid.shape[axis]
-        gradient = (np.take(p, np.arange(1, n), axis=a) - np.take(p, np.arange(n - 1), axis=a)) / grid.dx
-        rho_f = 0.5 * (np.take(rho, np.arange(n - 1), axis=a) + np.take(rho, np.arange(1, n), axis=a))
+        below, above = _pairs(p, axis, grid)
+        rho_below, rho_above = _pairs(rho, axis, grid)
+        correction = dt * (above - below) / grid.dx / (0.5 * (rho_below + rho_above))
+        sides = _solid_sides(axis, grid)
+        if sides is not None:
+            correction = np.where(sides[0] | sides[1], 0.0, correction)
         u_f = u_faces[axis].copy()
         inner = [slice(None)] * grid.dim
-        inner[a] = slice(1, n)
-        u_f[tuple(inner)] -= dt * gradient / rho_f
-        p_f = _faces(p, axis, grid, "edge")
+        inner[axis] = slice(1, grid.shape[axis])
+        u_f[tuple(inner)] -= correction
+        p_f = _faces(p, axis, grid, "pressure")
         out[1 + axis] -= dt * _divergence_along(p_f, axis, grid)
         energy_flux.append(p_f * u_f)
     out[-1] -= dt * _divergence(energy_flux, grid)
+    if grid.solid is not None:
+        out[:, grid.solid] = advected[:, grid.solid]
     return out, iterations[0], residual
 
 
@@ -229,7 +298,7 @@ def time_step(state: np.ndarray, grid: Grid, cfl: float = 0.5, acoustic: float =
     speed = np.max(np.abs(momentum) / rho, axis=0)
     if acoustic > 0:
         speed = speed + acoustic * sound_speed(rho, pressure(state, gamma), gamma)
-    fastest = float(speed.max())
+    fastest = float(speed.max() if grid.solid is None else np.max(speed, where=~grid.solid, initial=0.0))
     return cfl * grid.dx / fastest if fastest > 0 else float("inf")
 
 

@@ -1,4 +1,5 @@
-"""Gas scenes of CSMPM run by :func:`datagen.simulate`: ``shock_tube`` and ``circular_shock``.
+"""Gas scenes of CSMPM run by :func:`datagen.simulate`: ``shock_tube``, ``circular_shock`` and
+``stair_flow``.
 
 ``shock_tube``: any 1D Riemann problem on a tube of ``cells`` cells over ``length``:
 ``left`` = [rho, u, p] for x < ``interface``, ``right`` for x > it, ideal gas ``gamma``,
@@ -16,6 +17,13 @@ any step reaching the frame).
 ``radius`` of the centre, ``outside`` elsewhere, at rest. Its fields: ``x`` (N, 2) cell centres
 (row-major over x then y), ``density`` and ``pressure`` (frames + 1, N), ``velocity`` (frames + 1,
 N, 2); its mesh triangulates the cell centres (two triangles per square of four).
+
+``stair_flow`` (Woodward and Colella's forward-facing step, the thesis' Fig. 3.6): a channel
+of ``size`` = [length, height] with ``cells`` cells per unit length, walls at the bottom and
+top, an inlet on the left holding ``inflow`` = [rho, u, p] (default Mach 3) and an outlet on the
+right; a solid step of ``step`` = [start, height] on the floor; the channel starts filled with
+the inflow. Fields as ``circular_shock``'s over the gas cells only (the step's cells are left
+out: ``x`` (N, 2) their centres), and the mesh triangulates them.
 """
 
 from __future__ import annotations
@@ -32,16 +40,18 @@ from . import euler, gas
 
 __all__ = ["GAS_SCENES", "resolve", "simulate"]
 
-GAS_SCENES = ("shock_tube", "circular_shock")
+GAS_SCENES = ("shock_tube", "circular_shock", "stair_flow")
 DEFAULTS = {
     "shock_tube": {"left": [1.0, 0.0, 1.0], "right": [0.125, 0.0, 0.1], "cells": 400, "length": 1.0,
                    "interface": 0.5, "gamma": gas.GAMMA, "boundaries": "open"},
     "circular_shock": {"inside": [1.0, 1.0], "outside": [0.125, 0.1], "radius": 0.4, "cells": 128, "length": 2.0,
                        "gamma": gas.GAMMA},
+    "stair_flow": {"inflow": [1.4, 3.0, 1.0], "size": [3.0, 1.0], "step": [0.6, 0.2], "cells": 40, "gamma": gas.GAMMA},
 }
 SOLVER = {"cfl": 0.5, "acoustic": 1.0, "max_substeps": 100_000}
 OUTPUT = {"shock_tube": {"frames": 20, "frame_interval": 0.01},
-          "circular_shock": {"frames": 10, "frame_interval": 0.025}}
+          "circular_shock": {"frames": 10, "frame_interval": 0.025},
+          "stair_flow": {"frames": 20, "frame_interval": 0.2}}
 
 
 def _number(value, key: str, *, low=None, integer=False) -> float:
@@ -74,9 +84,23 @@ def _section(config: dict, name: str, defaults: dict) -> dict:
 
 def _params(name: str, p: dict) -> dict:
     """Scene ``name``'s params checked (types, ranges)."""
-    p["cells"] = _number(p["cells"], "params.cells", low=7, integer=True)
-    p["length"] = float(_number(p["length"], "params.length", low=0))
+    p["cells"] = _number(p["cells"], "params.cells", low=7 if name != "stair_flow" else 1, integer=True)
     p["gamma"] = float(_number(p["gamma"], "params.gamma", low=1))
+    if name == "stair_flow":
+        p["inflow"] = _state(p["inflow"], "params.inflow")
+        for key in ("size", "step"):
+            if not isinstance(p[key], (list, tuple)) or len(p[key]) != 2:
+                raise ConfigError(f"config key 'params.{key}' must be two numbers, got {p[key]!r}")
+            p[key] = [float(_number(v, f"params.{key}[{i}]", low=0)) for i, v in enumerate(p[key])]
+        (length, height), (start, rise) = p["size"], p["step"]
+        if not (start < length and rise < height):
+            raise ConfigError(f"config key 'params.step' [start, height] must lie inside the channel {p['size']}, "
+                              f"got {p['step']}")
+        if min(round(v * p["cells"]) for v in (length, height)) < 4:
+            raise ConfigError(f"config key 'params.cells' ({p['cells']} per unit length) gives fewer than 4 cells "
+                              f"across the channel {p['size']}; raise it")
+        return p
+    p["length"] = float(_number(p["length"], "params.length", low=0))
     if name == "circular_shock":
         p["inside"], p["outside"] = (_state(p[k], f"params.{k}", False) for k in ("inside", "outside"))
         p["radius"] = float(_number(p["radius"], "params.radius", low=0))
@@ -115,8 +139,11 @@ def resolve(config: dict) -> dict:
     return {"scene": name, "params": p, "solver": s, "output": o, "seed": seed}
 
 
-def _initial(name: str, p: dict) -> tuple[euler.Grid, np.ndarray, np.ndarray, Mesh]:
-    """(grid, conserved state, cell centres (N, d), mesh of the centres) of a scene's start."""
+def _initial(name: str, p: dict):
+    """(grid, conserved state, centres (N, d) of the cells the fields hold, their mesh, their flat
+    indices or None for every cell) of a scene's start."""
+    if name == "stair_flow":
+        return _stair(p)
     n, length = p["cells"], p["length"]
     dx = length / n
     centres = (np.arange(n) + 0.5) * dx
@@ -125,22 +152,48 @@ def _initial(name: str, p: dict) -> tuple[euler.Grid, np.ndarray, np.ndarray, Me
         left = centres < p["interface"]
         rho, u, pres = (np.where(left, a, b) for a, b in zip(p["left"], p["right"], strict=True))
         mesh = Mesh(centres[:, None], np.stack([np.arange(n - 1), np.arange(1, n)], 1))
-        return grid, gas.conserved(rho, u[None], pres, p["gamma"]), centres[:, None], mesh
+        return grid, gas.conserved(rho, u[None], pres, p["gamma"]), centres[:, None], mesh, None
     grid = euler.Grid((n, n), dx, (("wall", "wall"), ("wall", "wall")))
     x, y = np.meshgrid(centres, centres, indexing="ij")
     inside = (x - length / 2) ** 2 + (y - length / 2) ** 2 < p["radius"] ** 2
     rho, pres = (np.where(inside, a, b) for a, b in zip(p["inside"], p["outside"], strict=True))
-    ids = np.arange(n * n).reshape(n, n)
+    mesh, _ = _grid_mesh(x, y, np.ones((n, n), bool))
+    return grid, gas.conserved(rho, np.zeros((2, n, n)), pres, p["gamma"]), mesh.nodes, mesh, None
+
+
+def _grid_mesh(x: np.ndarray, y: np.ndarray, keep: np.ndarray) -> tuple[Mesh, np.ndarray]:
+    """The triangulated centres of the ``keep`` cells of a 2D grid: two triangles per square of
+    four kept cells; (mesh, the kept cells' flat indices)."""
+    kept = np.flatnonzero(keep.ravel())
+    number = np.full(keep.size, -1)
+    number[kept] = np.arange(len(kept))
+    ids = number.reshape(keep.shape)
     a, b, c, d = ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(), ids[:-1, 1:].ravel()
-    mesh = Mesh(np.stack([x.ravel(), y.ravel()], 1), np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]))
-    return grid, gas.conserved(rho, np.zeros((2, n, n)), pres, p["gamma"]), mesh.nodes, mesh
+    full = (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)
+    a, b, c, d = a[full], b[full], c[full], d[full]
+    cells = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    return Mesh(np.stack([x.ravel()[kept], y.ravel()[kept]], 1), cells), kept
+
+
+def _stair(p: dict):
+    (length, height), (start, rise), n = p["size"], p["step"], p["cells"]
+    dx = 1.0 / n
+    nx, ny = round(length * n), round(height * n)
+    x, y = np.meshgrid((np.arange(nx) + 0.5) * dx, (np.arange(ny) + 0.5) * dx, indexing="ij")
+    solid = (x > start) & (y < rise)
+    rho, u, pres = p["inflow"]
+    inflow = gas.conserved(np.array(rho), np.array([u, 0.0]), np.array(pres), p["gamma"])
+    grid = euler.Grid((nx, ny), dx, (("inlet", "open"), ("wall", "wall")), inflow=inflow, solid=solid)
+    state = np.broadcast_to(inflow[:, None, None], (4, nx, ny)).copy()
+    mesh, kept = _grid_mesh(x, y, ~solid)
+    return grid, state, mesh.nodes, mesh, kept
 
 
 def simulate(config: dict) -> Trajectory:
     """Run a gas scene (a config dict whose ``scene`` is in :data:`GAS_SCENES`)."""
     config = resolve(config)
     p, s, o = config["params"], config["solver"], config["output"]
-    grid, state, x, mesh = _initial(config["scene"], p)
+    grid, state, x, mesh, kept = _initial(config["scene"], p)
     frames, wall, substeps, times = [state], [0.0], 0, [0.0]
     t, iterations = 0.0, [0]
     for k in range(1, o["frames"] + 1):
@@ -162,6 +215,8 @@ def simulate(config: dict) -> Trajectory:
         frames.append(state)
         times.append(t)
     stacked = np.stack(frames).reshape(len(frames), grid.dim + 2, -1)  # (T, d + 2, N)
+    if kept is not None:
+        stacked = stacked[:, :, kept]
     volume = grid.dx ** grid.dim
     rho = stacked[:, 0]
     velocity = np.moveaxis(stacked[:, 1:-1] / rho[:, None], 1, -1)  # (T, N, d)
