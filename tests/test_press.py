@@ -11,6 +11,7 @@ import torch
 from datagen import simulate
 from datagen.config import ConfigError
 from datagen.families import get_family, place
+from datagen.families.press import _simple, random_stroke
 from datagen.scenes import get_scene
 from datagen.scenes.press import INDENTER_SIZES
 
@@ -186,6 +187,41 @@ def test_train_polygons_mix_random_polygons_into_training_and_leave_old_draws_al
             family.sample({"train_polygons": bad}, np.random.default_rng(0), "train")
         assert str(error.value) == ("ranges.train_polygons is the fraction of bodies that are random polygons: "
                                     f"a number from 0 to 1, got {bad!r}")
+
+
+def test_train_strokes_mix_thick_bent_bars_into_training():
+    family = get_family("press")
+    plain = [family.sample({"train_polygons": 0.5}, np.random.default_rng(k), "train") for k in range(30)]
+    assert plain == [family.sample({"train_polygons": 0.5, "train_strokes": 0.0}, np.random.default_rng(k), "train")
+                     for k in range(30)], "no strokes: the polygon datasets replay"
+    tests = [family.sample({}, np.random.default_rng(k), "test") for k in range(30)]
+    assert tests == [family.sample({"train_strokes": 0.4}, np.random.default_rng(k), "test") for k in range(30)]
+    mixed = [family.sample({"train_polygons": 0.3, "train_strokes": 0.3}, np.random.default_rng(k), "train")
+             for k in range(60)]
+    rings = [np.array(p["polygon"]) for p in mixed if "polygon" in p]
+    polygons_only = [family.sample({"train_polygons": 0.6}, np.random.default_rng(k), "train") for k in range(60)]
+    assert [("polygon" in p) for p in mixed] == [("polygon" in p) for p in polygons_only], "one draw decides the kind"
+    assert 24 <= len(rings) <= 48
+    strokes = [family.sample({"train_strokes": 1}, np.random.default_rng(k), "train")["polygon"] for k in range(20)]
+    for ring in map(np.array, strokes):
+        assert _simple(ring), "a stroke's outline never crosses itself"
+        assert np.ptp(ring, axis=0).max() == pytest.approx(1.0, abs=2e-6)
+        np.testing.assert_allclose((ring.max(0) + ring.min(0)) / 2, 0.0, atol=2e-6)
+        assert len(ring) % 2 == 0 and len(ring) >= 4  # two offset sides of one centreline
+    with pytest.raises(ConfigError, match=r"^ranges.train_polygons \+ ranges.train_strokes is 1.2: the fractions"):
+        family.sample({"train_polygons": 0.6, "train_strokes": 0.6}, np.random.default_rng(0), "train")
+
+
+def test_a_stroke_meshes_as_a_press_body():
+    ring = random_stroke(np.random.default_rng(5), 3, 0.25)
+    scene = build(polygon=ring)
+    nodes = scene.body.nodes
+    assert np.ptp(nodes, axis=0).max() == pytest.approx(0.12, rel=1e-9)
+    # the mesh fills the outline: its area is the outline's (shoelace), scaled to the body size
+    outline = np.array(ring) * 0.12 / np.ptp(np.array(ring), axis=0).max()
+    x, y = outline.T
+    area = 0.5 * abs(x @ np.roll(y, -1) - y @ np.roll(x, -1))
+    assert scene.body.cell_measures.sum() == pytest.approx(area, rel=1e-9)
 
 
 def test_family_places_one_foreign_mesh_with_overrides(tmp_path):

@@ -2,9 +2,11 @@
 
 Bodies of engineering stiffness (E log-uniform in megapascals) shaped as letters: the train
 and valid splits draw from ``ranges.train_chars`` or, with probability ``ranges.train_polygons``
-(default 0), a random star-shaped polygon; the test split from ``ranges.test_chars`` or, with
-probability ``ranges.test_polygons``, a random star-shaped polygon -- shapes never seen in
-training (every polygon is drawn afresh, so a test polygon is never a training one). The
+(default 0), a random star-shaped polygon, or with probability ``ranges.train_strokes``
+(default 0) a random stroke (:func:`random_stroke`: a thick bent bar, the primitive letters
+and brackets are made of); the test split from ``ranges.test_chars`` or, with probabilities
+``ranges.test_polygons`` and ``ranges.test_strokes``, a polygon or a stroke -- shapes never seen
+in training (every polygon and stroke is drawn afresh, so a test one is never a training one). The
 indenter (disk, box or wedge, sized relative to the body) starts just above the body at a
 random offset and moves along a random line near the vertical at a few cm/s, then back
 (:mod:`datagen.scenes.press`).
@@ -31,7 +33,8 @@ DIM, CONTACT, OBSTACLES, CLAMPED = 2, True, True, False
 DRIVEN = True  # the indenter moves as prescribed and does work on the body
 RANGES = {
     "train_chars": "ABCDEFHKLMNPRTVWXYZ", "test_chars": "GJQSU", "test_polygons": 0.5, "train_polygons": 0.0,
-    "polygon_vertices": [5, 9],
+    "polygon_vertices": [5, 9], "train_strokes": 0.0, "test_strokes": 0.0, "stroke_segments": [1, 4],
+    "stroke_width": [0.15, 0.35],
     "size": [0.1, 0.13], "E": [1e6, 2e7], "nu": [0.3, 0.45], "density": [1000.0, 1500.0],
     "indenters": ["disk", "box", "wedge"], "indenter_scale": [0.12, 0.25], "indenter_aspect": [0.4, 1.0],
     "indenter_offset": [-0.25, 0.25], "speed": [0.03, 0.06], "angle": [-10.0, 10.0], "gap": [0.001, 0.003],
@@ -44,6 +47,58 @@ def random_polygon(rng: np.random.Generator, vertices: int) -> list[list[float]]
     base = np.sort(rng.uniform(-0.3, 0.3, vertices) + np.arange(vertices)) * (2 * math.pi / vertices)
     radius = rng.uniform(0.55, 1.0, vertices)
     return np.round(np.stack([radius * np.cos(base), radius * np.sin(base)], 1), 6).tolist()
+
+
+def _simple(ring: np.ndarray) -> bool:
+    """Whether a closed ring (K, 2) has no two non-adjacent edges that cross."""
+    a, b = ring, np.roll(ring, -1, axis=0)
+    k = len(ring)
+    for i in range(k):
+        for j in range(i + 2, k - (i == 0)):
+            d1, d2 = b[i] - a[i], b[j] - a[j]
+            den = d1[0] * d2[1] - d1[1] * d2[0]
+            if abs(den) < 1e-14:
+                continue
+            r = a[j] - a[i]
+            t, u = (r[0] * d2[1] - r[1] * d2[0]) / den, (r[0] * d1[1] - r[1] * d1[0]) / den
+            if 0.0 <= t <= 1.0 and 0.0 <= u <= 1.0:
+                return False
+    return True
+
+
+def random_stroke(rng: np.random.Generator, segments: int, width: float) -> list[list[float]]:
+    """The outline of a thick bent bar: a centreline of ``segments`` straight or curved pieces
+    (each 0.6-1.4 units long, turning by up to 135 degrees, a curved one as an arc sampled every
+    15 degrees), offset by ``width`` / 2 to both sides with mitred joins and square ends;
+    redrawn until the outline does not cross itself. Bars, L and V brackets, hooks and arcs."""
+    for _ in range(100):
+        heading, points = rng.uniform(0, 2 * math.pi), [np.zeros(2)]
+        for _ in range(segments):
+            length, turn = rng.uniform(0.6, 1.4), rng.uniform(-0.75, 0.75) * math.pi
+            if rng.uniform() < 0.5:  # a corner, then a straight piece
+                heading += turn
+                points.append(points[-1] + length * np.array([math.cos(heading), math.sin(heading)]))
+            else:  # an arc turning by ``turn`` over ``length``
+                pieces = max(1, int(abs(turn) / math.radians(15)))
+                for _ in range(pieces):
+                    heading += turn / pieces
+                    points.append(points[-1] + length / pieces * np.array([math.cos(heading), math.sin(heading)]))
+        line = np.array(points)
+        tangent = np.diff(line, axis=0)
+        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+        normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1)
+        joins = [normal[0]] + [n1 + n2 for n1, n2 in zip(normal[:-1], normal[1:], strict=True)] + [normal[-1]]
+        offsets = []
+        for k, join in enumerate(joins):  # mitre: the offset that keeps both neighbouring edges at width / 2
+            n = normal[min(k, len(normal) - 1)]
+            join = join / np.linalg.norm(join)
+            offsets.append(join * (0.5 * width / max(float(join @ n), 0.35)))
+        offsets = np.array(offsets)
+        ring = np.concatenate([line + offsets, (line - offsets)[::-1]])
+        if _simple(ring):
+            ring -= (ring.max(0) + ring.min(0)) / 2
+            return np.round(ring / np.ptp(ring, axis=0).max(), 6).tolist()
+    raise RuntimeError("no simple stroke outline in 100 draws")  # not reached for the default ranges
 
 
 def _indenter(r: dict, rng: np.random.Generator, size: float) -> dict:
@@ -59,8 +114,8 @@ def _indenter(r: dict, rng: np.random.Generator, size: float) -> dict:
 def _fraction(r: dict, key: str) -> float:
     value = r[key]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
-        raise ConfigError(f"ranges.{key} is the fraction of bodies that are random polygons: a number from 0 to 1, "
-                          f"got {value!r}")
+        raise ConfigError(f"ranges.{key} is the fraction of bodies that are random {key.split('_')[1]}: "
+                          f"a number from 0 to 1, got {value!r}")
     return float(value)
 
 
@@ -70,9 +125,18 @@ def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
     size = uniform(r, "size", rng)
     body: dict = {"char": chars[int(rng.integers(len(chars)))]}
     polygons = _fraction(r, "test_polygons" if split == "test" else "train_polygons")
-    # a train/valid draw takes no extra random number when train_polygons is 0: older datasets replay
-    if (split == "test" or polygons > 0) and rng.uniform() < polygons:
+    strokes = _fraction(r, "test_strokes" if split == "test" else "train_strokes")
+    if polygons + strokes > 1.0:
+        prefix = "test" if split == "test" else "train"
+        raise ConfigError(f"ranges.{prefix}_polygons + ranges.{prefix}_strokes is {polygons + strokes:g}: the "
+                          "fractions of polygons and strokes may add up to 1 at most (the rest are letters)")
+    # a train/valid draw takes no extra random number when both fractions are 0: older datasets replay
+    kind = rng.uniform() if split == "test" or polygons + strokes > 0 else 1.0
+    if kind < polygons:
         body = {"polygon": random_polygon(rng, integer(r, "polygon_vertices", rng, minimum=3))}
+    elif kind < polygons + strokes:
+        width = uniform(r, "stroke_width", rng)
+        body = {"polygon": random_stroke(rng, integer(r, "stroke_segments", rng, minimum=1), width)}
     return {
         **body, "size": size, "E": log_uniform(r, "E", rng), "nu": uniform(r, "nu", rng),
         "density": uniform(r, "density", rng), **_indenter(r, rng, size),
