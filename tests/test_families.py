@@ -85,6 +85,17 @@ def test_press_deep_xl_extends_press_deep():
         [trajectory_config(small, "train", k) for k in range(small["splits"]["train"])]
 
 
+def test_press_kinds_shares_press_deeps_test_split_and_trains_on_three_kinds():
+    """press_kinds changes only what training shows: its test trajectories are press_deep's (so
+    its results compare with press_deep's, and the files can be hard-linked)."""
+    deep, kinds = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in ("press_deep", "press_kinds"))
+    for k in range(deep["splits"]["test"]):
+        assert trajectory_config(kinds, "test", k) == trajectory_config(deep, "test", k)
+    bodies = [trajectory_config(kinds, "train", k)["params"] for k in range(100)]
+    letters = sum("char" in p and p.get("polygon") is None for p in bodies)
+    assert 28 <= letters <= 52 and all(p["char"] in "ABCDEFHKLMNPRTVWXYZ" for p in bodies if p.get("polygon") is None)
+
+
 def test_disks_start_apart_and_inside_the_box():
     dconfig = load_dataset_config(CONFIGS / "disks.yaml")
     for index in range(50):
