@@ -15,6 +15,10 @@ any pressure solve. Solver: the scene defaults (CFL 0.5 on |u| + c). Ends with e
     python benchmarks/csmpm_validation.py [--cells 128 256 512 1024 2048] [--reference 4096]
         [--circular 64 128 256] [--circular-reference 512] [--pictures docs/images]
 
+``--performance 128 256 512 1024`` also times ``--steps`` steps of the circular shock at each
+resolution (acoustic CFL 0.5, after two steps of the blast): cell-steps per second and CG
+iterations per step, one thread.
+
 ``--pictures DIR`` also draws ``csmpm_sod.png`` (Sod at 128 and 512 cells over the exact
 solution), ``csmpm_circular_shock.png`` and ``csmpm_stair_flow.png`` (schlieren: exp(-k |grad
 rho| / max |grad rho|), Woodward and Colella's Mach 3 step at t = 0.5, 1, 2, 4, 60 cells per unit).
@@ -131,6 +135,24 @@ def pictures(folder: Path, circular: int) -> None:
     plt.close(fig)
 
 
+def performance(resolutions: list[int], steps: int) -> None:
+    from datagen.csmpm import euler
+    from datagen.csmpm.scenes import _initial, resolve
+
+    print(f"{'cells':>10}{'cell-steps/s':>14}{'s/step':>9}{'CG mean':>9}{'CG max':>8}")
+    for n in resolutions:
+        config = resolve({"scene": "circular_shock", "params": {"cells": n}})
+        grid, state, *_ = _initial("circular_shock", config["params"])
+        for _ in range(2):  # the blast under way, caches warm
+            state, _ = euler.step(state, grid, euler.time_step(state, grid, 0.5, 1.0))
+        iterations, start = [], time.perf_counter()
+        for _ in range(steps):
+            state, info = euler.step(state, grid, euler.time_step(state, grid, 0.5, 1.0))
+            iterations.append(info.cg_iterations)
+        seconds = (time.perf_counter() - start) / steps
+        print(f"{f'{n}^2':>10}{n * n / seconds:>14.3g}{seconds:>9.3f}{np.mean(iterations):>9.1f}{max(iterations):>8}")
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cells", type=int, nargs="+", default=[128, 256, 512, 1024, 2048])
@@ -138,7 +160,11 @@ def main(argv=None) -> None:
     parser.add_argument("--circular", type=int, nargs="+", default=[64, 128, 256])
     parser.add_argument("--circular-reference", type=int, default=512)
     parser.add_argument("--pictures", type=Path, default=None, help="folder for the pictures (none: no pictures)")
+    parser.add_argument("--performance", type=int, nargs="*", default=[], help="circular shock resolutions to time")
+    parser.add_argument("--steps", type=int, default=5, help="steps timed per --performance resolution")
     args = parser.parse_args(argv)
+    if args.performance:
+        performance(args.performance, args.steps)
     if args.pictures is not None:
         pictures(args.pictures, args.circular[-1])
     cg_max, summary = 0, {}
