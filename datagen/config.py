@@ -13,7 +13,7 @@ import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-__all__ = ["ConfigError", "reject_unknown", "read_yaml", "merge", "output_folder"]
+__all__ = ["ConfigError", "reject_unknown", "section", "read_yaml", "merge", "output_folder"]
 
 
 class ConfigError(ValueError):
@@ -32,6 +32,17 @@ def reject_unknown(given: Mapping, known: Iterable[str], *, prefix: str = "", wh
     if unknown:
         name = f"{prefix}.{unknown[0]}" if prefix else unknown[0]
         raise ConfigError(f"unknown config key '{name}'; {where} accepts: {', '.join(sorted(known))}")
+
+
+def section(config: Mapping, name: str, defaults: Mapping, where: str | None = None) -> dict:
+    """Section ``name`` of ``config`` over its ``defaults``: ConfigError where it is not a
+    mapping or holds a key the defaults do not (``where``: what accepts the keys, in words;
+    default the section's own name)."""
+    given = config.get(name) or {}
+    if not isinstance(given, Mapping):
+        raise ConfigError(f"config key '{name}' must be a mapping, got {given!r}")
+    reject_unknown(given, defaults, prefix=name, where=where or f"'{name}'")
+    return {**defaults, **given}
 
 
 def merge(base: Mapping, over: Mapping) -> dict:

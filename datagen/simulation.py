@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from . import interrupts
-from .config import ConfigError, read_yaml, reject_unknown
+from .config import ConfigError, read_yaml, reject_unknown, section
 from .csmpm.scenes import GAS_SCENES
 from .csmpm.scenes import simulate as simulate_gas
 from .layer import ExtendedMesh, with_extra_layer
@@ -80,14 +80,6 @@ def _load(config) -> dict:
         kind = type(config).__name__
         raise ConfigError(f"a config must be a mapping (or a YAML file holding one), got {kind}")
     return copy.deepcopy(config)
-
-
-def _section(config: dict, name: str, defaults: dict) -> dict:
-    given = config.get(name) or {}
-    if not isinstance(given, dict):
-        raise ConfigError(f"config key '{name}' must be a mapping, got {given!r}")
-    reject_unknown(given, defaults, prefix=name, where=f"'{name}'")
-    return {**defaults, **given}
 
 
 def _positive(value, key: str, *, optional=False, integer=False):
@@ -144,9 +136,9 @@ def resolve_config(config) -> dict:
         raise ConfigError("config key 'scene' is missing; name a scene, e.g. scene: vibrating_bar")
     scene = get_scene(config["scene"])
     params = scene.params(config.get("params") or {})
-    solver = _section(config, "solver", {**SOLVER_DEFAULTS, **scene.SOLVER})
+    solver = section(config, "solver", {**SOLVER_DEFAULTS, **scene.SOLVER})
     _check_solver(solver)
-    output = _section(config, "output", {**OUTPUT_DEFAULTS, **scene.OUTPUT})
+    output = section(config, "output", {**OUTPUT_DEFAULTS, **scene.OUTPUT})
     _positive(output["frames"], "output.frames", integer=True)
     _positive(output["frame_interval"], "output.frame_interval")
     if not isinstance(output["step_diagnostics"], bool):

@@ -33,7 +33,7 @@ import time
 
 import numpy as np
 
-from ..config import ConfigError, reject_unknown
+from ..config import ConfigError, reject_unknown, section
 from ..mesh import Mesh
 from ..trajectory import NodeType, Trajectory
 from . import euler, gas
@@ -72,14 +72,6 @@ def _state(value, key: str, with_velocity: bool = True) -> list[float]:
     if not (values[0] > 0 and values[-1] > 0):
         raise ConfigError(f"config key '{key}' needs positive density and pressure, got {value!r}")
     return values
-
-
-def _section(config: dict, name: str, defaults: dict) -> dict:
-    given = config.get(name) or {}
-    if not isinstance(given, dict):
-        raise ConfigError(f"config key '{name}' must be a mapping, got {given!r}")
-    reject_unknown(given, defaults, prefix=name, where=f"scene {config['scene']!r}")
-    return {**defaults, **given}
 
 
 def _params(name: str, p: dict) -> dict:
@@ -123,8 +115,8 @@ def resolve(config: dict) -> dict:
     """The full config of a gas scene (defaults filled in, every value checked)."""
     reject_unknown(config, {"scene", "params", "solver", "output", "seed"})
     name = config["scene"]
-    p, s, o = (_section(config, n, d) for n, d in (("params", DEFAULTS[name]), ("solver", SOLVER),
-                                                    ("output", OUTPUT[name])))
+    p, s, o = (section(config, n, d, f"scene {name!r}") for n, d in (("params", DEFAULTS[name]),
+                                                                     ("solver", SOLVER), ("output", OUTPUT[name])))
     p = _params(name, p)
     s["cfl"] = float(_number(s["cfl"], "solver.cfl", low=0))
     s["acoustic"] = float(_number(s["acoustic"], "solver.acoustic"))
