@@ -323,9 +323,9 @@ class FrameDataset(NumberedSamples):
         if self.states:
             raise ConfigError(f"config key 'train.loss_weight' 'motion' needs Lagrangian data; {self.files[0]} "
                               f"holds {self.spec.describe()} (use 'uniform')")
-        scales = np.array([np.sqrt(np.mean(np.square(p[1:, sc.node_type == NodeType.FREE] -
-                                                     p[:1, sc.node_type == NodeType.FREE]).sum(-1)))
-                           for p, sc in zip(self.positions, self.scenarios, strict=True)])
+        free = [scenario.node_type == NodeType.FREE for scenario in self.scenarios]
+        scales = np.array([np.sqrt(np.mean(np.sum((p[1:, f] - p[:1, f]) ** 2, axis=-1)))
+                           for p, f in zip(self.positions, free, strict=True)])
         weights = 1.0 / np.maximum(scales, 0.25 * np.median(scales)) ** 2
         counts = np.diff(self._starts)
         weights /= np.sum(weights * counts) / np.sum(counts)

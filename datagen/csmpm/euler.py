@@ -46,7 +46,7 @@ BOUNDARIES = ("wall", "open", "inlet")
 EPSILON = 1e-6  # the WENO weights' guard against division by zero
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Grid:
     """A regular grid of cells: ``shape`` cells per axis, square cells of side ``dx``, per axis
     the (low, high) boundaries, each ``wall``, ``open`` or ``inlet``; ``inflow``: the conserved
@@ -91,22 +91,18 @@ class StepInfo:
 
 def _ghosts(state: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
     """``state`` (k, *cells) padded by two ghost cells at both ends of ``axis``."""
-    a = axis + 1
+    a, n = axis + 1, grid.shape[axis]
     parts = []
-    for side, (index, order) in zip(grid.boundaries[axis], ((slice(0, 2), slice(None, None, -1)),
-                                                           (slice(-2, None), slice(None, None, -1))), strict=True):
-        take = [slice(None)] * state.ndim
-        if side == "wall":
-            take[a] = index
-            ghost = state[tuple(take)][(slice(None),) * a + (order,)].copy()
-            ghost[1 + axis] *= -1.0  # the normal momentum
+    for side, pair, edge in zip(grid.boundaries[axis], ([0, 1], [n - 2, n - 1]), ([0, 0], [n - 1, n - 1]),
+                                strict=True):
+        if side == "wall":  # the two cells mirrored, their normal momentum negated
+            ghost = np.flip(np.take(state, pair, axis=a), axis=a)
+            ghost[1 + axis] *= -1.0
         elif side == "inlet":
-            take[a] = index
-            ghost = np.empty_like(state[tuple(take)])
-            ghost[...] = np.reshape(grid.inflow, (-1,) + (1,) * (state.ndim - 1))
-        else:
-            take[a] = slice(0, 1) if index.start == 0 else slice(-1, None)
-            ghost = np.repeat(state[tuple(take)], 2, axis=a)
+            ghost = np.broadcast_to(np.reshape(grid.inflow, (-1,) + (1,) * (state.ndim - 1)),
+                                    np.take(state, pair, axis=a).shape)
+        else:  # open: the edge cell extrapolated
+            ghost = np.take(state, edge, axis=a)
         parts.append(ghost)
     return np.concatenate([parts[0], state, parts[1]], axis=a)
 
@@ -159,14 +155,15 @@ def advective_flux(state: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
     return faces
 
 
+def _difference(faces: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
+    """Per cell, the face value above minus the one below along ``axis`` (n + 1 faces), over dx."""
+    a, n = faces.ndim - grid.dim + axis, grid.shape[axis]
+    return (np.take(faces, np.arange(1, n + 1), axis=a) - np.take(faces, np.arange(n), axis=a)) / grid.dx
+
+
 def _divergence(faces: list[np.ndarray], grid: Grid) -> np.ndarray:
     """Cell sums of face values (one array per axis, n + 1 faces along it) out minus in, over dx."""
-    total = 0.0
-    for axis, f in enumerate(faces):
-        a = f.ndim - grid.dim + axis
-        total = total + (np.take(f, np.arange(1, grid.shape[axis] + 1), axis=a) -
-                         np.take(f, np.arange(grid.shape[axis]), axis=a))
-    return total / grid.dx
+    return sum(_difference(f, axis, grid) for axis, f in enumerate(faces))
 
 
 def _rate(state: np.ndarray, grid: Grid) -> np.ndarray:
@@ -215,18 +212,27 @@ def _faces(cells: np.ndarray, axis: int, grid: Grid, kind: str) -> np.ndarray:
     return np.concatenate([ends[0], inner, ends[1]], axis=axis)
 
 
+def _face_coefficients(density: np.ndarray, grid: Grid) -> list[np.ndarray]:
+    """Per axis, 1 / rho_f on the interior faces (rho_f the mean of the two cells), 0 on faces
+    next to a solid cell: how a pressure difference across each face moves it."""
+    out = []
+    for axis in range(grid.dim):
+        below, above = _pairs(density, axis, grid)
+        coefficient = 2.0 / (below + above)
+        sides = _solid_sides(axis, grid)
+        out.append(coefficient if sides is None else np.where(sides[0] | sides[1], 0.0, coefficient))
+    return out
+
+
 def _laplacian(density: np.ndarray, grid: Grid) -> sp.csr_matrix:
     """The matrix of -div(grad p / rho_f) over the cells: couplings across faces between two gas
     cells (domain boundaries and solid faces: no gradient); symmetric positive semi-definite."""
     size = int(np.prod(grid.shape))
     ids = np.arange(size).reshape(grid.shape)
     rows, cols, values = [], [], []
-    for axis in range(grid.dim):
+    for axis, coefficient in enumerate(_face_coefficients(density, grid)):
         left, right = (i.ravel() for i in _pairs(ids, axis, grid))
-        w = 2.0 / (density.ravel()[left] + density.ravel()[right]) / grid.dx ** 2
-        sides = _solid_sides(axis, grid)
-        if sides is not None:
-            w = np.where((sides[0] | sides[1]).ravel(), 0.0, w)
+        w = coefficient.ravel() / grid.dx ** 2
         rows += [left, right, left, right]
         cols += [left, right, right, left]
         values += [w, w, -w, -w]
@@ -265,29 +271,19 @@ def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gam
     p = solution.reshape(grid.shape)
     out = advected.copy()
     energy_flux = []
-    for axis in range(grid.dim):
+    for axis, coefficient in enumerate(_face_coefficients(rho, grid)):
         below, above = _pairs(p, axis, grid)
-        rho_below, rho_above = _pairs(rho, axis, grid)
-        correction = dt * (above - below) / grid.dx / (0.5 * (rho_below + rho_above))
-        sides = _solid_sides(axis, grid)
-        if sides is not None:
-            correction = np.where(sides[0] | sides[1], 0.0, correction)
         u_f = u_faces[axis].copy()
         inner = [slice(None)] * grid.dim
         inner[axis] = slice(1, grid.shape[axis])
-        u_f[tuple(inner)] -= correction
+        u_f[tuple(inner)] -= dt * coefficient * (above - below) / grid.dx
         p_f = _faces(p, axis, grid, "pressure")
-        out[1 + axis] -= dt * _divergence_along(p_f, axis, grid)
+        out[1 + axis] -= dt * _difference(p_f, axis, grid)
         energy_flux.append(p_f * u_f)
     out[-1] -= dt * _divergence(energy_flux, grid)
     if grid.solid is not None:
         out[:, grid.solid] = advected[:, grid.solid]
     return out, iterations[0], residual
-
-
-def _divergence_along(faces: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
-    n = grid.shape[axis]
-    return (np.take(faces, np.arange(1, n + 1), axis=axis) - np.take(faces, np.arange(n), axis=axis)) / grid.dx
 
 
 def time_step(state: np.ndarray, grid: Grid, cfl: float = 0.5, acoustic: float = 0.0, gamma: float = GAMMA) -> float:

@@ -132,7 +132,7 @@ def resolve(config: dict) -> dict:
 
 
 def _initial(name: str, p: dict):
-    """(grid, conserved state, centres (N, d) of the cells the fields hold, their mesh, their flat
+    """(grid, conserved state, the mesh of the centres of the cells the fields hold, their flat
     indices or None for every cell) of a scene's start."""
     if name == "stair_flow":
         return _stair(p)
@@ -144,13 +144,13 @@ def _initial(name: str, p: dict):
         left = centres < p["interface"]
         rho, u, pres = (np.where(left, a, b) for a, b in zip(p["left"], p["right"], strict=True))
         mesh = Mesh(centres[:, None], np.stack([np.arange(n - 1), np.arange(1, n)], 1))
-        return grid, gas.conserved(rho, u[None], pres, p["gamma"]), centres[:, None], mesh, None
+        return grid, gas.conserved(rho, u[None], pres, p["gamma"]), mesh, None
     grid = euler.Grid((n, n), dx, (("wall", "wall"), ("wall", "wall")))
     x, y = np.meshgrid(centres, centres, indexing="ij")
     inside = (x - length / 2) ** 2 + (y - length / 2) ** 2 < p["radius"] ** 2
     rho, pres = (np.where(inside, a, b) for a, b in zip(p["inside"], p["outside"], strict=True))
     mesh, _ = _grid_mesh(x, y, np.ones((n, n), bool))
-    return grid, gas.conserved(rho, np.zeros((2, n, n)), pres, p["gamma"]), mesh.nodes, mesh, None
+    return grid, gas.conserved(rho, np.zeros((2, n, n)), pres, p["gamma"]), mesh, None
 
 
 def _grid_mesh(x: np.ndarray, y: np.ndarray, keep: np.ndarray) -> tuple[Mesh, np.ndarray]:
@@ -178,14 +178,15 @@ def _stair(p: dict):
     grid = euler.Grid((nx, ny), dx, (("inlet", "open"), ("wall", "wall")), inflow=inflow, solid=solid)
     state = np.broadcast_to(inflow[:, None, None], (4, nx, ny)).copy()
     mesh, kept = _grid_mesh(x, y, ~solid)
-    return grid, state, mesh.nodes, mesh, kept
+    return grid, state, mesh, kept
 
 
 def simulate(config: dict) -> Trajectory:
     """Run a gas scene (a config dict whose ``scene`` is in :data:`GAS_SCENES`)."""
     config = resolve(config)
     p, s, o = config["params"], config["solver"], config["output"]
-    grid, state, x, mesh, kept = _initial(config["scene"], p)
+    grid, state, mesh, kept = _initial(config["scene"], p)
+    x = mesh.nodes
     frames, wall, substeps, times = [state], [0.0], 0, [0.0]
     t, iterations = 0.0, [0]
     for k in range(1, o["frames"] + 1):
