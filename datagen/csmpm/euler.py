@@ -116,9 +116,11 @@ def _weno(minus, centre, plus) -> np.ndarray:
     return (a0 * q0 + a1 * q1) / (a0 + a1)
 
 
-def advective_flux(state: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
+def advective_flux(state: np.ndarray, axis: int, grid: Grid, passable: np.ndarray | None = None) -> np.ndarray:
     """(k, ..., n + 1, ...) WENO-LLF fluxes u_n U through the faces normal to ``axis`` (face j
-    between cells j - 1 and j; walls carry none)."""
+    between cells j - 1 and j; walls carry none). ``passable``: the faces' open fractions (n + 1
+    along ``axis``), each face's flux scaled by it (the thesis' blend of a passable flux with a
+    reflective one, which carries none); without it faces next to solid cells carry none."""
     padded = _ghosts(state, axis, grid)
     a, n = axis + 1, grid.shape[axis]
     velocity = padded[1 + axis] / padded[0]
@@ -150,7 +152,9 @@ def advective_flux(state: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
             index = [slice(None)] * faces.ndim
             index[a] = end
             faces[tuple(index)] = 0.0
-    if blocked is not None:
+    if passable is not None:
+        faces *= passable
+    elif blocked is not None:
         faces[:, blocked] = 0.0
     return faces
 
@@ -166,14 +170,16 @@ def _divergence(faces: list[np.ndarray], grid: Grid) -> np.ndarray:
     return sum(_difference(f, axis, grid) for axis, f in enumerate(faces))
 
 
-def _rate(state: np.ndarray, grid: Grid) -> np.ndarray:
-    return -_divergence([advective_flux(state, axis, grid) for axis in range(grid.dim)], grid)
+def _rate(state: np.ndarray, grid: Grid, passable) -> np.ndarray:
+    return -_divergence([advective_flux(state, axis, grid, None if passable is None else passable[axis])
+                         for axis in range(grid.dim)], grid)
 
 
-def advect(state: np.ndarray, grid: Grid, dt: float) -> np.ndarray:
-    """The state after advection by the flow over dt (SSP-RK2)."""
-    first = state + dt * _rate(state, grid)
-    return 0.5 * (state + first + dt * _rate(first, grid))
+def advect(state: np.ndarray, grid: Grid, dt: float, passable: list[np.ndarray] | None = None) -> np.ndarray:
+    """The state after advection by the flow over dt (SSP-RK2); ``passable``: per axis the faces'
+    open fractions (:func:`advective_flux`)."""
+    first = state + dt * _rate(state, grid, passable)
+    return 0.5 * (state + first + dt * _rate(first, grid, passable))
 
 
 def _pairs(array: np.ndarray, axis: int, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
@@ -224,13 +230,14 @@ def _face_coefficients(density: np.ndarray, grid: Grid) -> list[np.ndarray]:
     return out
 
 
-def _laplacian(density: np.ndarray, grid: Grid) -> sp.csr_matrix:
-    """The matrix of -div(grad p / rho_f) over the cells: couplings across faces between two gas
-    cells (domain boundaries and solid faces: no gradient); symmetric positive semi-definite."""
+def _laplacian(coefficients: list[np.ndarray], grid: Grid) -> sp.csr_matrix:
+    """The matrix of -div(c_f grad p) over the cells, ``coefficients`` c_f per axis on the interior
+    faces (1 / rho_f for the gas; 0 where faces carry no gradient: domain boundaries, static
+    solids); symmetric positive semi-definite."""
     size = int(np.prod(grid.shape))
     ids = np.arange(size).reshape(grid.shape)
     rows, cols, values = [], [], []
-    for axis, coefficient in enumerate(_face_coefficients(density, grid)):
+    for axis, coefficient in enumerate(coefficients):
         left, right = (i.ravel() for i in _pairs(ids, axis, grid))
         w = coefficient.ravel() / grid.dx ** 2
         rows += [left, right, left, right]
@@ -256,7 +263,7 @@ def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gam
     if grid.solid is not None:
         solid = grid.solid.ravel()
         diagonal, rhs = np.where(solid, 1.0, diagonal), np.where(solid, p_star.ravel(), rhs)
-    matrix = (_laplacian(rho, grid) + sp.diags(diagonal)).tocsr()
+    matrix = (_laplacian(_face_coefficients(rho, grid), grid) + sp.diags(diagonal)).tocsr()
     inverse = 1.0 / matrix.diagonal()
     iterations = [0]
 

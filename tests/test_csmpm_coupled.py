@@ -1,0 +1,134 @@
+"""CSMPM's gas-solid coupling (datagen.csmpm.coupled): MPM particles on the gas grid and one
+pressure solve for both phases."""
+
+import math
+
+import numpy as np
+import pytest
+
+from datagen import shapes
+from datagen.csmpm import coupled, euler, gas
+from datagen.mpm.materials import NeoHookean
+from datagen.mpm.plasticity import J2Softening
+
+
+def _slab(lo: float, hi: float, dx: float, material, p0: float, per_cell: int = 4) -> coupled.Solid:
+    """A 1D solid slab [lo, hi] of ``per_cell`` particles per cell."""
+    x = np.arange(lo + dx / per_cell / 2, hi, dx / per_cell)[:, None]
+    n = len(x)
+    return coupled.Solid(x=x, v=np.zeros((n, 1)), C=np.zeros((n, 1, 1)), F=np.ones((n, 1, 1)),
+                         volume=np.full(n, dx / per_cell), mass=np.full(n, material.density * dx / per_cell),
+                         Jg=np.ones(n), material=material, ghost=material.lam, p0=p0)
+
+
+def _box(n: int) -> euler.Grid:
+    return euler.Grid((n, n), 1.0 / n, (("wall", "wall"), ("wall", "wall")))
+
+
+def _totals(state, solid, dx):
+    cell = dx ** (state.ndim - 1)
+    return (state[0].sum() * cell, state[1:-1].reshape(state.shape[0] - 2, -1).sum(1) * cell + solid.momentum,
+            state[-1].sum() * cell + coupled.solid_energy(solid))
+
+
+def test_the_blocked_fraction_is_the_ball_of_the_solid_volume():
+    dx = 0.1
+    # 2D: a disk of diameter half a cell blocks half a face; a full cell blocks all of it
+    assert coupled.blocked_fraction(np.array(math.pi * 0.025 ** 2), dx, 2) == pytest.approx(0.5, rel=1e-14)
+    assert coupled.blocked_fraction(np.array(dx * dx), dx, 2) == 1.0
+    # 3D: a ball's cross-section over the face's area
+    r = 0.04
+    assert coupled.blocked_fraction(np.array(4 / 3 * math.pi * r ** 3), dx, 3) == pytest.approx(math.pi * r * r / dx ** 2,
+                                                                                               rel=1e-14)
+    np.testing.assert_array_equal(coupled.blocked_fraction(np.array([0.0, 0.03, 0.2]), dx, 1), [0.0, 0.3, 1.0])
+
+
+def test_without_a_solid_the_coupled_step_is_the_gas_step():
+    n = 24
+    grid = euler.Grid((n, n), 1.0 / n, (("inlet", "open"), ("wall", "wall")),
+                      inflow=gas.conserved(np.array(1.4), np.array([3.0, 0.0]), np.array(1.0)))
+    rng = np.random.default_rng(0)
+    state = gas.conserved(rng.uniform(0.5, 2, (n, n)), rng.normal(0, 1, (2, n, n)), rng.uniform(0.5, 2, (n, n)))
+    material = NeoHookean(E=1e3, nu=0.3, density=2.0)
+    empty = coupled.Solid(x=np.zeros((0, 2)), v=np.zeros((0, 2)), C=np.zeros((0, 2, 2)), F=np.zeros((0, 2, 2)),
+                          volume=np.zeros(0), mass=np.zeros(0), Jg=np.zeros(0), material=material, ghost=material.lam)
+    dt = 0.3 / n / 5
+    a, _, info = coupled.step(state, empty, grid, dt)
+    b, gas_info = euler.step(state, grid, dt)
+    assert np.abs(a - b).max() <= 4e-15
+    assert info.cg_iterations == gas_info.cg_iterations
+
+
+def test_a_body_at_rest_in_still_gas_stays_at_rest():
+    n = 24
+    grid = _box(n)
+    solid = coupled.Solid.from_mesh(shapes.disk(0.15, 0.5 / n, center=(0.5, 0.5)),
+                                    NeoHookean(E=100.0, nu=0.3, density=5.0), p0=1.0)
+    state = gas.conserved(np.ones(grid.shape), np.zeros((2, n, n)), np.ones(grid.shape))
+    start = state.copy()
+    for _ in range(5):
+        state, solid, info = coupled.step(state, solid, grid, coupled.time_step(state, solid, grid))
+    assert np.abs(solid.v).max() == 0.0 and np.abs(solid.Jg - 1.0).max() == 0.0
+    assert np.abs(state - start).max() == 0.0
+    assert info.solid_cells.sum() > 0
+
+
+@pytest.mark.parametrize("material", [NeoHookean(E=200.0, nu=0.3, density=3.0),
+                                      J2Softening(E=200.0, nu=0.3, density=3.0, kappa_peak=0.3, kappa_residual=0.1,
+                                                  eta=1.0)], ids=["elastic", "plastic"])
+def test_a_shock_pushes_a_body_conserving_mass_and_balancing_momentum(material):
+    """A closed box: gas at 4x the pressure on the left quarter hits a disk. Mass is conserved to
+    round-off; each step the momentum of gas and solid together changes by exactly the walls'
+    pressure impulse; energy (gas, solid kinetic and elastic) drifts by little."""
+    n = 32
+    dx = 1.0 / n
+    grid = _box(n)
+    solid = coupled.Solid.from_mesh(shapes.disk(0.12, 0.5 * dx, center=(0.55, 0.5)), material, p0=1.0)
+    x = (np.arange(n) + 0.5) * dx
+    left = (x < 0.25)[:, None] & np.ones(n, bool)
+    state = gas.conserved(np.where(left, 2.0, 1.0), np.zeros((2, n, n)), np.where(left, 4.0, 1.0))
+    mass0, momentum, energy0 = _totals(state, solid, dx)
+    worst, drift, iterations = 0.0, 0.0, []
+    start = solid.x.mean(axis=0)
+    for _ in range(150):
+        dt = coupled.time_step(state, solid, grid)
+        state, solid, info = coupled.step(state, solid, grid, dt)
+        p = info.pressure
+        wall = -dt * dx * np.array([p[-1].sum() - p[0].sum(), p[:, -1].sum() - p[:, 0].sum()])
+        mass, now, energy = _totals(state, solid, dx)
+        worst = max(worst, float(np.abs(now - momentum - wall).max()))
+        drift = max(drift, abs(energy / energy0 - 1.0))
+        momentum = now
+        iterations.append(info.cg_iterations)
+    assert mass == pytest.approx(mass0, rel=1e-15, abs=0.0)
+    assert worst <= 1e-15
+    assert drift <= 2e-3
+    assert max(iterations) <= 12
+    moved = solid.x.mean(axis=0) - start
+    assert moved[0] > 0.02 and abs(moved[1]) < 1e-2 * moved[0], "pushed to the right, not sideways"
+    assert solid.momentum[0] > 0.3 * solid.mass.sum()
+    if solid.plastic_strain is not None:
+        assert solid.plastic_strain.max() > 0.0, "the weak disk yields"
+
+
+def test_a_slab_between_two_pressures_moves_as_an_acoustic_piston():
+    """A heavy slab (mass M per area) between gas at p + dp and p: while its speed U is small
+    against the sound speeds, M dU/dt = dp - Z U with Z = rho_l c_l + rho_r c_r (each side's
+    acoustic impedance), so U = dp / Z (1 - exp(-Z t / M))."""
+    n = 200
+    dx = 1.0 / n
+    grid = euler.Grid((n,), dx, (("wall", "wall"),))
+    material = NeoHookean(E=1e4, nu=0.3, density=20.0)
+    solid = _slab(0.45, 0.55, dx, material, p0=1.5)
+    x = (np.arange(n) + 0.5) * dx
+    state = gas.conserved(np.ones(n), np.zeros((1, n)), np.where(x < 0.5, 2.0, 1.0))
+    mass = solid.mass.sum()
+    impedance = 1.0 * gas.sound_speed(1.0, 2.0) + 1.0 * gas.sound_speed(1.0, 1.0)
+    t, errors = 0.0, []
+    for _ in range(300):
+        dt = coupled.time_step(state, solid, grid, 0.4)
+        state, solid, _ = coupled.step(state, solid, grid, dt)
+        t += dt
+        exact = 1.0 / impedance * (1.0 - math.exp(-impedance * t / mass))
+        errors.append(solid.momentum[0] / mass / exact - 1.0)
+    assert max(abs(e) for e in errors) <= 0.02
