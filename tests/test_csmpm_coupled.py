@@ -6,8 +6,10 @@ import math
 import numpy as np
 import pytest
 
+import datagen
 from datagen import shapes
-from datagen.csmpm import coupled, euler, gas
+from datagen.config import ConfigError
+from datagen.csmpm import coupled, coupled_scenes, euler, gas
 from datagen.mpm.materials import NeoHookean
 from datagen.mpm.plasticity import J2Softening
 
@@ -132,3 +134,23 @@ def test_a_slab_between_two_pressures_moves_as_an_acoustic_piston():
         exact = 1.0 / impedance * (1.0 - math.exp(-impedance * t / mass))
         errors.append(solid.momentum[0] / mass / exact - 1.0)
     assert max(abs(e) for e in errors) <= 0.02
+
+
+def test_lifting_cylinder_runs_through_simulate_and_the_shock_carries_it_downstream():
+    t = datagen.simulate({"scene": "lifting_cylinder", "params": {"cells": 50},
+                          "output": {"frames": 3, "frame_interval": 0.03}})
+    nx, ny = 50, 10
+    assert t.fields["x"].shape == (nx * ny, 2) and t.fields["density"].shape == (4, nx * ny)
+    assert t.fields["velocity"].shape == (4, nx * ny, 2) and t.fields["solid"].shape == (4, nx * ny)
+    assert t.positions.shape == (4, t.mesh.n_nodes, 2)
+    centre = t.diagnostics["centre"]
+    assert np.all(np.diff(centre[:, 0]) > 0) and centre[-1, 0] - centre[0, 0] > 0.06, "carried downstream"
+    assert centre[-1, 1] > centre[0, 1] + 1e-3, "and lifted off the floor"
+    assert t.fields["solid"][1:].sum(1).min() > 10 and max(t.diagnostics["cg_iterations"]) <= 12
+    # behind the shock the inlet holds the Rankine-Hugoniot state of Mach 3 into (1.4, 1): (5.4, 2.222, 10.333)
+    rho, u, p = coupled_scenes.shock_state(3.0, 1.4, 1.0)
+    assert (rho, u, p) == pytest.approx((5.4, 20.0 / 9.0, 31.0 / 3.0), rel=1e-14)
+    with pytest.raises(ConfigError, match="must put the cylinder inside the channel"):
+        datagen.simulate({"scene": "lifting_cylinder", "params": {"centre": [0.15, 0.18]}})
+    with pytest.raises(ConfigError, match="must be > 1 \\(a shock\\)"):
+        datagen.simulate({"scene": "lifting_cylinder", "params": {"mach": 0.5}})

@@ -29,7 +29,8 @@ A step follows the thesis' Algorithm 3.1 in its order:
    gas and solid exchange balances to round-off. The gas's energy changes by the work p_f u_f of
    its faces; at a face between a gas and a solid cell only the gas side's (the work on the solid).
 6. **MPM grid update** after the coupled solve (the thesis' order, §3.2.8): elastic forces
-   -sum_p V0 tau grad w, gravity, slip walls and static solids on the face nodes.
+   -sum_p V0 tau grad w, gravity; the domain's ends are separable slip walls (face nodes at or
+   past an end keep no normal velocity into it) and static solids hold their face nodes.
 7. **G2P**: velocities and APIC affine matrices, F <- (I + dt C) F (then the material's return
    map), J^g <- J^g (1 + dt tr C) (eq. 3.20), positions.
 
@@ -81,12 +82,14 @@ class Solid:
 
     @classmethod
     def from_mesh(cls, mesh, material, *, velocity=None, p0: float = 0.0, ghost: float | None = None) -> Solid:
-        """One particle per mesh cell, at its centroid with its measure as volume; ``ghost``
-        defaults to the material's first Lamé parameter (the thesis' lambda^g), or its bulk
-        modulus where that is not positive."""
+        """One particle per mesh node (so the body's mesh moves with the particles), its volume the
+        node's share of the cells around it (each cell's measure split evenly among its nodes);
+        ``ghost`` defaults to the material's first Lamé parameter (the thesis' lambda^g), or its
+        bulk modulus where that is not positive."""
         nodes, cells = np.asarray(mesh.nodes, np.float64), np.asarray(mesh.cells)
-        x = nodes[cells].mean(axis=1)
-        volume = np.asarray(mesh.cell_measures, np.float64)
+        x = nodes.copy()
+        share = np.repeat(np.asarray(mesh.cell_measures, np.float64) / cells.shape[1], cells.shape[1])
+        volume = np.bincount(cells.ravel(), share, minlength=len(nodes))
         n, d = x.shape
         v = np.zeros((n, d)) if velocity is None else np.broadcast_to(np.asarray(velocity, np.float64), (n, d)).copy()
         if ghost is None:
@@ -184,22 +187,35 @@ def _scatter(stencil: _Stencil, values) -> np.ndarray:
     return out.reshape(stencil.shape)
 
 
+PAD = 2  # ghost nodes past each end of every axis, so that no particle's stencil leaves the node set
+
+
 def _face_stencils(x: np.ndarray, grid: euler.Grid) -> list[_Stencil]:
+    """Per axis the particles' stencils on that axis's face nodes, padded by PAD nodes past both
+    ends of every axis (node k of axis a's set sits at (k - PAD) dx along a and (k - PAD + 1/2) dx
+    along the others)."""
     out = []
     for axis in range(grid.dim):
-        shift = np.full(grid.dim, 0.5)
-        shift[axis] = 0.0
-        shape = list(grid.shape)
+        shift = np.full(grid.dim, 0.5 - PAD)
+        shift[axis] = -PAD
+        shape = [n + 2 * PAD for n in grid.shape]
         shape[axis] += 1
         out.append(_stencil(x, grid.dx, shift, tuple(shape)))
     return out
 
 
+def _crop(array: np.ndarray) -> np.ndarray:
+    """The grid's own nodes of a padded node array (a view)."""
+    return array[(slice(PAD, -PAD),) * array.ndim]
+
+
 # ----------------------------------------------------------------------------------- the step
 
 def _interior(array: np.ndarray, axis: int) -> np.ndarray:
-    """The interior faces (indices 1 .. n - 1 along ``axis``) of a face array."""
-    return np.take(array, np.arange(1, array.shape[axis] - 1), axis=axis)
+    """The interior faces (indices 1 .. n - 1 along ``axis``) of a face array (a view)."""
+    index = [slice(None)] * array.ndim
+    index[axis] = slice(1, array.shape[axis] - 1)
+    return array[tuple(index)]
 
 
 def _kirchhoff(solid: Solid) -> np.ndarray:
@@ -218,7 +234,8 @@ def time_step(state: np.ndarray, solid: Solid, grid: euler.Grid, cfl: float = 0.
 
 
 def _solid_on_grid(solid: Solid, grid: euler.Grid):
-    """P2G: per axis the face nodes' solid mass and momentum; per cell the solid volume and J^g."""
+    """P2G: per axis the face nodes' solid mass and momentum (padded: :func:`_face_stencils`); per
+    cell the solid volume and J^g."""
     stencils = _face_stencils(solid.x, grid)
     masses, momenta = [], []
     for axis, stencil in enumerate(stencils):
@@ -226,10 +243,10 @@ def _solid_on_grid(solid: Solid, grid: euler.Grid):
         affine = solid.C[:, axis, :]
         momenta.append(_scatter(stencil, lambda w, g, o, a=axis, c=affine:
                                 w * solid.mass * (solid.v[:, a] + grid.dx * (c * o).sum(axis=1))))
-    cells = _stencil(solid.x, grid.dx, np.full(grid.dim, 0.5), tuple(grid.shape))
+    cells = _stencil(solid.x, grid.dx, np.full(grid.dim, 0.5 - PAD), tuple(n + 2 * PAD for n in grid.shape))
     current = solid.volume * np.linalg.det(solid.F)
-    volume = _scatter(cells, current)
-    ghost = _scatter(cells, current * solid.Jg)
+    volume = _crop(_scatter(cells, current))
+    ghost = _crop(_scatter(cells, current * solid.Jg))
     Jg = np.where(volume > 0, ghost / np.where(volume > 0, volume, 1.0), 1.0)
     return stencils, masses, momenta, volume, Jg
 
@@ -276,7 +293,7 @@ def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravit
         u_gas = np.where(gas_below & ~gas_above, below, np.where(gas_above & ~gas_below, above, 0.5 * (below + above)))
         rho_f = 0.5 * np.add(*euler._pairs(rho, axis, grid))
         m_gas = (1.0 - _interior(blocked[axis], axis)) * rho_f * volume_cell
-        m_solid, q_solid = _interior(solid_mass[axis], axis), _interior(solid_momentum[axis], axis)
+        m_solid, q_solid = _interior(_crop(solid_mass[axis]), axis), _interior(_crop(solid_momentum[axis]), axis)
         m_face = m_gas + m_solid
         open_face = m_face > 1e-300
         if grid.solid is not None:
@@ -315,7 +332,7 @@ def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravit
         below, above = euler._pairs(p, axis, grid)
         impulse = -dt * (above - below) / dx  # the face's momentum change per unit cell volume
         solid_below, solid_above = euler._pairs(moving, axis, grid)
-        has_solid = _interior(solid_mass[axis], axis) > 0
+        has_solid = _interior(_crop(solid_mass[axis]), axis) > 0
         share = shares[axis]
         take_below = np.where(has_solid, share + (1.0 - share) * solid_below, 0.0)
         take_above = np.where(has_solid, share + (1.0 - share) * solid_above, 0.0)
@@ -332,12 +349,11 @@ def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravit
         to_solid = 0.5 * impulse * (take_below + take_above) * volume_cell
         mass = solid_mass[axis]
         velocity = np.divide(solid_momentum[axis], mass, out=np.zeros_like(mass), where=mass > 0)
-        inner_velocity = _interior(velocity, axis)
-        inner_velocity += np.divide(to_solid, _interior(mass, axis), out=np.zeros_like(to_solid), where=has_solid)
+        inner = _interior(_crop(velocity), axis)  # a view
+        inner += np.divide(to_solid, _interior(_crop(mass), axis), out=np.zeros_like(to_solid), where=has_solid)
+        solid_velocity.append(velocity)
         index = [slice(None)] * d
         index[axis] = slice(1, grid.shape[axis])
-        velocity[tuple(index)] = inner_velocity
-        solid_velocity.append(velocity)
         u_f = u_star[axis].copy()
         u_f[tuple(index)] += coefficients[axis] * impulse
         flux = p_f * u_f
@@ -363,11 +379,12 @@ def _mpm_update(solid: Solid, grid: euler.Grid, stencils, masses, velocities, dt
         velocity = velocity + np.divide(dt * force, mass, out=np.zeros_like(mass), where=mass > 0)
         if gravity is not None:
             velocity = np.where(mass > 0, velocity + dt * float(gravity[axis]), velocity)
-        index = np.indices(stencil.shape)[axis]
-        velocity[(index <= 0) | (index >= grid.shape[axis])] = 0.0  # the domain's ends hold the solid
+        index = np.indices(stencil.shape)[axis] - PAD  # the domain's ends: the solid may leave them, not cross
+        velocity = np.where(index <= 0, np.maximum(velocity, 0.0),
+                            np.where(index >= grid.shape[axis], np.minimum(velocity, 0.0), velocity))
         if grid.solid is not None:
             below, above = euler._solid_sides(axis, grid)
-            inner = _interior(velocity, axis)
+            inner = _interior(_crop(velocity), axis)  # a view: the grid's interior faces
             inner[below | above] = 0.0
         flat_velocity = velocity.ravel()
         for flat, weight, _, offset in stencil.nodes():

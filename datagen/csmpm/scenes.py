@@ -37,21 +37,25 @@ from ..config import ConfigError, reject_unknown, section
 from ..mesh import Mesh
 from ..trajectory import NodeType, Trajectory
 from . import euler, gas
+from .coupled_scenes import COUPLED_DEFAULTS, COUPLED_OUTPUT, check
+from .coupled_scenes import simulate as simulate_coupled
 
 __all__ = ["GAS_SCENES", "resolve", "simulate"]
 
-GAS_SCENES = ("shock_tube", "circular_shock", "stair_flow")
+GAS_SCENES = ("shock_tube", "circular_shock", "stair_flow", *COUPLED_DEFAULTS)
+"""The scenes CSMPM runs: gas alone, and gas with MPM solids (:mod:`datagen.csmpm.coupled_scenes`)."""
 DEFAULTS = {
     "shock_tube": {"left": [1.0, 0.0, 1.0], "right": [0.125, 0.0, 0.1], "cells": 400, "length": 1.0,
                    "interface": 0.5, "gamma": gas.GAMMA, "boundaries": "open"},
     "circular_shock": {"inside": [1.0, 1.0], "outside": [0.125, 0.1], "radius": 0.4, "cells": 128, "length": 2.0,
                        "gamma": gas.GAMMA},
     "stair_flow": {"inflow": [1.4, 3.0, 1.0], "size": [3.0, 1.0], "step": [0.6, 0.2], "cells": 40, "gamma": gas.GAMMA},
+    **COUPLED_DEFAULTS,
 }
 SOLVER = {"cfl": 0.5, "acoustic": 1.0, "max_substeps": 100_000}
 OUTPUT = {"shock_tube": {"frames": 20, "frame_interval": 0.01},
           "circular_shock": {"frames": 10, "frame_interval": 0.025},
-          "stair_flow": {"frames": 20, "frame_interval": 0.2}}
+          "stair_flow": {"frames": 20, "frame_interval": 0.2}, **COUPLED_OUTPUT}
 
 
 def _number(value, key: str, *, low=None, integer=False) -> float:
@@ -76,6 +80,8 @@ def _state(value, key: str, with_velocity: bool = True) -> list[float]:
 
 def _params(name: str, p: dict) -> dict:
     """Scene ``name``'s params checked (types, ranges)."""
+    if name in COUPLED_DEFAULTS:
+        return check(name, p, _number)
     p["cells"] = _number(p["cells"], "params.cells", low=7 if name != "stair_flow" else 1, integer=True)
     p["gamma"] = float(_number(p["gamma"], "params.gamma", low=1))
     if name == "stair_flow":
@@ -184,6 +190,8 @@ def _stair(p: dict):
 def simulate(config: dict) -> Trajectory:
     """Run a gas scene (a config dict whose ``scene`` is in :data:`GAS_SCENES`)."""
     config = resolve(config)
+    if config["scene"] in COUPLED_DEFAULTS:
+        return simulate_coupled(config)
     p, s, o = config["params"], config["solver"], config["output"]
     grid, state, mesh, kept = _initial(config["scene"], p)
     x = mesh.nodes
