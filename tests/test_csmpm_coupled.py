@@ -154,3 +154,28 @@ def test_lifting_cylinder_runs_through_simulate_and_the_shock_carries_it_downstr
         datagen.simulate({"scene": "lifting_cylinder", "params": {"centre": [0.15, 0.18]}})
     with pytest.raises(ConfigError, match="must be > 1 \\(a shock\\)"):
         datagen.simulate({"scene": "lifting_cylinder", "params": {"mach": 0.5}})
+
+
+def test_shell_explosion_blows_the_ring_outwards_and_keeps_the_gas():
+    t = datagen.simulate({"scene": "shell_explosion", "params": {"cells": 64, "radius": [0.1, 0.16]},
+                          "output": {"frames": 2, "frame_interval": 0.015}})
+    radius = np.hypot(*(t.positions - 0.5).transpose(2, 0, 1))  # (frames + 1, nodes)
+    inner = radius.min(axis=1)
+    assert inner[0] == pytest.approx(0.1, abs=1e-9) and inner[-1] > inner[1] > 0.1 + 0.01, "blown outwards"
+    mass = t.diagnostics["mass"]
+    assert np.abs(mass - mass[0]).max() <= 1e-14 * mass[0], "walls all round: the gas's mass is kept to round-off"
+    momentum = t.diagnostics["momentum"][-1]
+    scale = float((t.velocities[-1] ** 2).sum(1).max()) ** 0.5 * 1.0 * math.pi * (0.16 ** 2 - 0.1 ** 2)
+    assert np.abs(momentum).max() <= 2e-3 * scale, "a symmetric blast leaves the ring's momentum near zero"
+
+
+def test_bullet_leaves_the_barrel_along_its_axis():
+    t = datagen.simulate({"scene": "bullet", "params": {"cells": 50}, "output": {"frames": 2, "frame_interval": 0.04}})
+    centre = t.diagnostics["centre"]
+    assert centre[-1, 0] - centre[0, 0] > 0.05 and np.all(np.diff(centre[:, 0]) > 0)
+    assert abs(centre[-1, 1] - 0.5) < 2e-4, "guided by the barrel"
+    assert t.diagnostics["momentum"][-1, 0] > 0
+    with pytest.raises(ConfigError, match="must fit the bullet in the bore"):
+        datagen.simulate({"scene": "bullet", "params": {"bullet": [0.2, 0.2]}})
+    with pytest.raises(ConfigError, match="leaves the solid under 3 cells across"):
+        datagen.simulate({"scene": "shell_explosion", "params": {"cells": 32}})

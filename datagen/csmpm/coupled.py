@@ -30,7 +30,8 @@ A step follows the thesis' Algorithm 3.1 in its order:
    its faces; at a face between a gas and a solid cell only the gas side's (the work on the solid).
 6. **MPM grid update** after the coupled solve (the thesis' order, §3.2.8): elastic forces
    -sum_p V0 tau grad w, gravity; the domain's ends are separable slip walls (face nodes at or
-   past an end keep no normal velocity into it) and static solids hold their face nodes.
+   past an end keep no normal velocity into it), and so are the faces between static solid cells
+   and the rest.
 7. **G2P**: velocities and APIC affine matrices, F <- (I + dt C) F (then the material's return
    map), J^g <- J^g (1 + dt tr C) (eq. 3.20), positions.
 
@@ -114,13 +115,14 @@ class Solid:
 @dataclass(frozen=True)
 class CoupledInfo:
     """What a coupled step did: dt, CG iterations and relative residual, the cell pressures
-    (gas or ghost) and the solid cells."""
+    (gas or ghost), the solid cells and how many gas cells had their pressure floored."""
 
     dt: float
     cg_iterations: int
     residual: float
     pressure: np.ndarray
     solid_cells: np.ndarray
+    floored: int = 0
 
 
 def blocked_fraction(volume: np.ndarray, dx: float, dim: int) -> np.ndarray:
@@ -269,9 +271,11 @@ def _blocked_faces(volume: np.ndarray, grid: euler.Grid) -> list[np.ndarray]:
 
 
 def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravity=None, gamma: float = GAMMA,
-         rtol: float = 1e-10) -> tuple[np.ndarray, Solid, CoupledInfo]:
+         rtol: float = 1e-10, floor_ratio: float = 1e-3) -> tuple[np.ndarray, Solid, CoupledInfo]:
     """One coupled step of dt (module docstring): the gas state (d + 2, *cells) and the solid
-    after it, and what the step did. ``grid.solid`` may hold static solid cells besides."""
+    after it, and what the step did. ``grid.solid`` may hold static solid cells besides. A gas
+    cell whose pressure would fall below ``floor_ratio`` times the step's mean gas pressure is
+    held there (cavitation; energy is added, counted in the info's ``floored``)."""
     d, dx, volume_cell = grid.dim, grid.dx, grid.dx ** grid.dim
     stencils, solid_mass, solid_momentum, solid_volume, Jg = _solid_on_grid(solid, grid)
     moving = solid_volume >= 0.5 * volume_cell
@@ -362,8 +366,17 @@ def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravit
     out[-1] += energy
     keep = moving | static  # the gas inside solids stays as advected (its impulse went to the solid)
     out[:, keep] = advected[:, keep]
+    # where a solid pulls away faster than gas can follow (a body lifting off a wall), the continuous
+    # pressure would go below zero: the gas cavitates; floor its pressure at a fraction of the
+    # step's mean gas pressure and count the cells (CoupledInfo.floored)
+    gas_cells = ~keep
+    floor = floor_ratio * float(np.mean(pressure(state, gamma), where=gas_cells)) if gas_cells.any() else 0.0
+    low = gas_cells & (pressure(out, gamma) < floor)
+    if low.any():
+        kinetic = 0.5 * (out[1:-1, low] ** 2).sum(axis=0) / out[0, low]
+        out[-1, low] = kinetic + floor / (gamma - 1.0)
     new_solid = _mpm_update(solid, grid, stencils, solid_mass, solid_velocity, dt, gravity)
-    return out, new_solid, CoupledInfo(dt, iterations[0], residual, p, moving)
+    return out, new_solid, CoupledInfo(dt, iterations[0], residual, p, moving, int(low.sum()))
 
 
 def _mpm_update(solid: Solid, grid: euler.Grid, stencils, masses, velocities, dt: float, gravity) -> Solid:
@@ -385,7 +398,9 @@ def _mpm_update(solid: Solid, grid: euler.Grid, stencils, masses, velocities, dt
         if grid.solid is not None:
             below, above = euler._solid_sides(axis, grid)
             inner = _interior(_crop(velocity), axis)  # a view: the grid's interior faces
-            inner[below | above] = 0.0
+            # a face between a static solid and the rest is a separable slip wall; faces inside it are free
+            inner[:] = np.where(below & ~above, np.maximum(inner, 0.0), np.where(above & ~below, np.minimum(inner, 0.0),
+                                                                                  inner))
         flat_velocity = velocity.ravel()
         for flat, weight, _, offset in stencil.nodes():
             value = np.where(flat >= 0, flat_velocity[np.maximum(flat, 0)], 0.0) * weight

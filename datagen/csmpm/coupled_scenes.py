@@ -1,21 +1,33 @@
 """Gas and MPM solids in one solve (:mod:`datagen.csmpm.coupled`), run by :func:`datagen.simulate`.
 
-``lifting_cylinder`` (Arienti et al. 2003; the thesis' Fig. 3.7): a channel of ``size`` =
-[length, height] with ``cells`` cells per unit length, walls at the bottom and top, an inlet on
-the left and an outlet on the right. A shock of Mach ``mach`` moving right through still gas
-``ahead`` = [rho, p] starts at x = ``shock_at``; behind it the gas holds the Rankine–Hugoniot
-state, which the inlet keeps feeding. A cylinder of ``radius`` lies at ``centre`` (on the floor
-by default), a solid of the package's MPM materials (``material``: ``neo_hookean``,
-``linear`` or ``fixed_corotated``; ``E``, ``nu``, ``density``) meshed at ``mesh_size``
-(default: half a cell), one particle per mesh node. Swept over by the shock, it is lifted off
-the floor and carried towards the top wall.
+Every scene's solid is a body of the package's MPM materials (``material``: ``neo_hookean``,
+``linear`` or ``fixed_corotated``; ``E``, ``nu``, ``density``) meshed at ``mesh_size`` (default:
+half a cell), one particle per mesh node; ``cells`` is the number of grid cells per unit length.
 
-The Trajectory's mesh is the cylinder's and its positions and velocities the cylinder's nodes;
-its ``fields`` hold the gas on every cell: ``x`` (N, 2) cell centres (row-major over x then y),
+``lifting_cylinder`` (Arienti et al. 2003; the thesis' Fig. 3.7): a channel of ``size`` =
+[length, height], walls at the bottom and top, an inlet on the left and an outlet on the right.
+A shock of Mach ``mach`` moving right through still gas ``ahead`` = [rho, p] starts at x =
+``shock_at``; behind it the gas holds the Rankine–Hugoniot state, which the inlet keeps feeding.
+A cylinder of ``radius`` lies at ``centre`` (on the floor by default). Swept over by the shock,
+it is carried downstream and lifted off the floor.
+
+``shell_explosion`` (the thesis' Fig. 3.10, scaled to this machine): a square box of side
+``length`` with walls all round; an elastic ring (``radius`` = [inner, outer]) at its centre holds
+gas ``inside`` = [rho, p] in still gas ``outside``; the ring is blown outwards.
+
+``bullet`` (the thesis' Fig. 3.12, scaled): a box of ``size`` with walls except the outlet on the
+right; a barrel of static solid cells (walls ``wall`` thick above and below a bore of
+``bore``, open to the right, ``barrel`` long) holds a bullet (``bullet`` = [length, height],
+a rectangle with a rounded nose, its back at ``breech``) with gas ``chamber`` = [rho, p] behind
+it and still gas ``outside`` everywhere else; the bullet is fired out of the barrel.
+
+The Trajectory's mesh is the body's, its positions and velocities the body's nodes; its
+``fields`` hold the gas on every cell: ``x`` (N, 2) cell centres (row-major over x then y),
 ``density``, ``pressure`` (frames + 1, N) and ``velocity`` (frames + 1, N, 2) (inside the solid:
 the gas it encloses), and ``solid`` (frames + 1, N) the cells the solve took as solid; its
-diagnostics per frame: gas ``mass``, the solid's ``momentum`` and ``centre``, and ``cg_iterations``
-(the most of any step reaching the frame).
+diagnostics per frame: gas ``mass``, the solid's ``momentum`` and ``centre``, ``cg_iterations``
+(the most of any step reaching the frame) and ``floored`` (gas cell-steps whose pressure was
+floored: :func:`datagen.csmpm.coupled.step`).
 """
 
 from __future__ import annotations
@@ -33,12 +45,19 @@ from . import coupled, euler, gas
 
 __all__ = ["COUPLED_DEFAULTS", "COUPLED_OUTPUT", "check", "simulate", "shock_state"]
 
+_BODY = {"material": "neo_hookean", "mesh_size": None, "gamma": gas.GAMMA}
 COUPLED_DEFAULTS = {
     "lifting_cylinder": {"size": [1.0, 0.2], "cells": 100, "mach": 3.0, "ahead": [1.4, 1.0], "shock_at": 0.08,
-                         "radius": 0.05, "centre": [0.15, 0.05], "material": "neo_hookean", "E": 2.0e4, "nu": 0.3,
-                         "density": 10.77, "mesh_size": None, "gamma": gas.GAMMA},
+                         "radius": 0.05, "centre": [0.15, 0.05], "E": 2.0e4, "nu": 0.3, "density": 10.77, **_BODY},
+    "shell_explosion": {"length": 1.0, "cells": 128, "radius": [0.12, 0.16], "inside": [1.0, 10.0],
+                        "outside": [1.0, 1.0], "E": 100.0, "nu": 0.3, "density": 1.0, **_BODY},
+    "bullet": {"size": [3.0, 1.0], "cells": 100, "bore": 0.16, "wall": 0.06, "barrel": 1.0, "bullet": [0.2, 0.14],
+               "breech": 0.3, "chamber": [5.0, 50.0], "outside": [1.0, 1.0], "E": 1.0e4, "nu": 0.25,
+               "density": 10.0, **_BODY},
 }
-COUPLED_OUTPUT = {"lifting_cylinder": {"frames": 10, "frame_interval": 0.03}}
+COUPLED_OUTPUT = {"lifting_cylinder": {"frames": 10, "frame_interval": 0.03},
+                  "shell_explosion": {"frames": 10, "frame_interval": 0.02},
+                  "bullet": {"frames": 10, "frame_interval": 0.03}}
 ELASTIC = ("neo_hookean", "linear", "fixed_corotated")
 
 
@@ -58,43 +77,76 @@ def _pair(value, key: str) -> list[float]:
     return [float(v) for v in value]
 
 
+def _inside(ok: bool, what: str) -> None:
+    if not ok:
+        raise ConfigError(what)
+
+
 def check(name: str, p: dict, number) -> dict:
     """Scene ``name``'s params checked (``number``: the scenes' number check)."""
     p["cells"] = number(p["cells"], "params.cells", low=1, integer=True)
     p["gamma"] = float(number(p["gamma"], "params.gamma", low=1))
-    for key in ("size", "ahead", "centre"):
-        p[key] = _pair(p[key], key)
-    for key in ("mach", "radius", "E", "density"):
+    for key in ("E", "density"):
         p[key] = float(number(p[key], f"params.{key}", low=0))
-    if p["mach"] <= 1:
-        raise ConfigError(f"config key 'params.mach' must be > 1 (a shock), got {p['mach']!r}")
     p["nu"] = float(number(p["nu"], "params.nu"))
     if not -1 < p["nu"] < 0.5:
         raise ConfigError(f"config key 'params.nu' must lie in (-1, 0.5), got {p['nu']!r}")
     if p["material"] not in ELASTIC:
         raise ConfigError(f"config key 'params.material' must be one of {', '.join(ELASTIC)}, got {p['material']!r}")
-    (length, height), (cx, cy), r = p["size"], p["centre"], p["radius"]
-    p["shock_at"] = float(number(p["shock_at"], "params.shock_at", low=0))
-    if not (r <= cx - p["shock_at"] and cx + r < length and r <= cy and cy + r < height):
-        raise ConfigError(f"config keys 'params.centre' {p['centre']} and 'params.radius' {r:g} must put the "
-                          f"cylinder inside the channel {p['size']}, ahead of the shock at x = {p['shock_at']:g}")
     dx = 1.0 / p["cells"]
-    if r < 2 * dx:
-        raise ConfigError(f"config key 'params.cells' ({p['cells']} per unit length) leaves the cylinder (radius "
-                          f"{r:g}) under 2 cells across its radius; raise it")
+    pairs = {"lifting_cylinder": ("size", "ahead", "centre"), "shell_explosion": ("radius", "inside", "outside"),
+             "bullet": ("size", "bullet", "chamber", "outside")}[name]
+    for key in pairs:
+        p[key] = _pair(p[key], key)
+    if name == "lifting_cylinder":
+        p["mach"], p["radius"] = (float(number(p[k], f"params.{k}", low=0)) for k in ("mach", "radius"))
+        if p["mach"] <= 1:
+            raise ConfigError(f"config key 'params.mach' must be > 1 (a shock), got {p['mach']!r}")
+        (length, height), (cx, cy), r = p["size"], p["centre"], p["radius"]
+        p["shock_at"] = float(number(p["shock_at"], "params.shock_at", low=0))
+        _inside(r <= cx - p["shock_at"] and cx + r < length and r <= cy and cy + r < height,
+                f"config keys 'params.centre' {p['centre']} and 'params.radius' {r:g} must put the cylinder inside "
+                f"the channel {p['size']}, ahead of the shock at x = {p['shock_at']:g}")
+        thinnest = r
+    elif name == "shell_explosion":
+        p["length"] = float(number(p["length"], "params.length", low=0))
+        inner, outer = p["radius"]
+        _inside(inner < outer < 0.5 * p["length"] - 2 * dx,
+                f"config key 'params.radius' [inner, outer] must have inner < outer < half the box less two cells "
+                f"({0.5 * p['length'] - 2 * dx:g}), got {p['radius']}")
+        thinnest = 0.5 * (outer - inner)
+    else:
+        for key in ("bore", "wall", "barrel", "breech"):
+            p[key] = float(number(p[key], f"params.{key}", low=0))
+        (length, height), (long, high) = p["size"], p["bullet"]
+        _inside(high < p["bore"] and p["bore"] + 2 * p["wall"] < height - 4 * dx,
+                f"config keys 'params.bullet' {p['bullet']}, 'params.bore' {p['bore']:g} and 'params.wall' "
+                f"{p['wall']:g} must fit the bullet in the bore and the barrel in the box {p['size']}")
+        _inside(2 * dx <= p["breech"] and p["breech"] + long < p["barrel"] < length - 4 * dx,
+                f"config keys 'params.breech' {p['breech']:g} and 'params.barrel' {p['barrel']:g} must put the "
+                f"bullet ({long:g} long) inside a barrel shorter than the box {p['size']}")
+        _inside(p["wall"] >= 2 * dx, f"config key 'params.wall' ({p['wall']:g}) must be at least 2 cells thick "
+                                     f"({2 * dx:g}); raise params.cells or the wall")
+        thinnest = 0.5 * high
+    if thinnest < 1.5 * dx:
+        raise ConfigError(f"config key 'params.cells' ({p['cells']} per unit length) leaves the solid under 3 cells "
+                          "across; raise it")
     p["mesh_size"] = 0.5 * dx if p["mesh_size"] is None else float(number(p["mesh_size"], "params.mesh_size", low=0))
     return p
 
 
-def _setup(p: dict):
-    (length, height), n = p["size"], p["cells"]
-    dx = 1.0 / n
-    nx, ny = round(length * n), round(height * n)
+def _cells(nx: int, ny: int, dx: float):
+    return np.meshgrid((np.arange(nx) + 0.5) * dx, (np.arange(ny) + 0.5) * dx, indexing="ij")
+
+
+def _lifting_cylinder(p: dict, dx: float):
+    (length, height) = p["size"]
+    nx, ny = round(length / dx), round(height / dx)
     rho1, p1 = p["ahead"]
     behind = shock_state(p["mach"], rho1, p1, p["gamma"])
     inflow = gas.conserved(np.array(behind[0]), np.array([behind[1], 0.0]), np.array(behind[2]), p["gamma"])
     grid = euler.Grid((nx, ny), dx, (("inlet", "open"), ("wall", "wall")), inflow=inflow)
-    x, y = np.meshgrid((np.arange(nx) + 0.5) * dx, (np.arange(ny) + 0.5) * dx, indexing="ij")
+    x, y = _cells(nx, ny, dx)
     shocked = x < p["shock_at"]
     state = gas.conserved(np.where(shocked, behind[0], rho1), np.stack([np.where(shocked, behind[1], 0.0),
                                                                         np.zeros_like(x)]),
@@ -102,23 +154,67 @@ def _setup(p: dict):
     # a cylinder resting on the floor is meshed a hair above it, so no particle sits on the wall's nodes
     cx, cy = p["centre"]
     mesh = shapes.disk(p["radius"], p["mesh_size"], center=(cx, max(cy, p["radius"] + 1e-3 * dx)))
+    return grid, state, mesh, p1
+
+
+def _shell_explosion(p: dict, dx: float):
+    n = round(p["length"] / dx)
+    grid = euler.Grid((n, n), dx, (("wall", "wall"), ("wall", "wall")))
+    x, y = _cells(n, n, dx)
+    centre = 0.5 * p["length"]
+    inside = np.hypot(x - centre, y - centre) < p["radius"][0]
+    (rho_in, p_in), (rho_out, p_out) = p["inside"], p["outside"]
+    state = gas.conserved(np.where(inside, rho_in, rho_out), np.zeros((2, n, n)), np.where(inside, p_in, p_out),
+                          p["gamma"])
+    mesh = shapes.annulus(p["radius"][0], p["radius"][1], p["mesh_size"], center=(centre, centre))
+    return grid, state, mesh, p_out
+
+
+def _bullet(p: dict, dx: float):
+    (length, height), (long, high) = p["size"], p["bullet"]
+    nx, ny = round(length / dx), round(height / dx)
+    x, y = _cells(nx, ny, dx)
+    axis, bore, wall = 0.5 * height, 0.5 * p["bore"], p["wall"]
+    barrel = (x < p["barrel"]) & (np.abs(y - axis) > bore) & (np.abs(y - axis) < bore + wall)
+    barrel |= (x < 2 * dx) & (np.abs(y - axis) <= bore)  # the breech closes the bore's back
+    grid = euler.Grid((nx, ny), dx, (("wall", "open"), ("wall", "wall")), solid=barrel)
+    chamber = (x < p["breech"]) & (np.abs(y - axis) <= bore)
+    (rho_c, p_c), (rho_o, p_o) = p["chamber"], p["outside"]
+    state = gas.conserved(np.where(chamber, rho_c, rho_o), np.zeros((2, nx, ny)), np.where(chamber, p_c, p_o),
+                          p["gamma"])
+    back, half = p["breech"] + 0.5 * dx, 0.5 * high
+    nose = np.linspace(-0.5 * np.pi, 0.5 * np.pi, 17)
+    ring = np.concatenate([[[back, axis - half]], np.stack([back + long - half + half * np.cos(nose),
+                                                            axis + half * np.sin(nose)], 1), [[back, axis + half]]])
+    return grid, state, shapes.polygon(ring, size=p["mesh_size"]), p_o
+
+
+_SETUPS = {"lifting_cylinder": _lifting_cylinder, "shell_explosion": _shell_explosion, "bullet": _bullet}
+
+
+def _setup(name: str, p: dict):
+    dx = 1.0 / p["cells"]
+    grid, state, mesh, ambient = _SETUPS[name](p, dx)
     material = MATERIALS[p["material"]](E=p["E"], nu=p["nu"], density=p["density"])
-    solid = coupled.Solid.from_mesh(mesh, material, p0=p1)
+    solid = coupled.Solid.from_mesh(mesh, material, p0=ambient)
+    x, y = _cells(*grid.shape, dx)
     return grid, state, solid, mesh, np.stack([x.ravel(), y.ravel()], 1)
 
 
 def simulate(config: dict) -> Trajectory:
     """Run a resolved coupled scene (:func:`datagen.csmpm.scenes.resolve`)."""
     p, s, o = config["params"], config["solver"], config["output"]
-    grid, state, solid, mesh, centres = _setup(p)
+    grid, state, solid, mesh, centres = _setup(config["scene"], p)
     frames, solids, cells, wall, times, iterations = [state], [solid], [np.zeros(len(centres), bool)], [0.0], [0.0], [0]
+    floored = [0]
     t, substeps = 0.0, 0
     for k in range(1, o["frames"] + 1):
-        end, start, most, steps = k * o["frame_interval"], time.perf_counter(), 0, 0
+        end, start, most, steps, low = k * o["frame_interval"], time.perf_counter(), 0, 0, 0
         while t < end - 1e-12 * end:
             dt = min(coupled.time_step(state, solid, grid, s["cfl"]), end - t)
             state, solid, info = coupled.step(state, solid, grid, dt, gamma=p["gamma"])
             t, steps, most = (end if dt == end - t else t + dt), steps + 1, max(most, info.cg_iterations)
+            low += info.floored
             if steps > s["max_substeps"]:
                 raise ConfigError(f"frame {k} took more than solver.max_substeps ({s['max_substeps']:,}) steps; "
                                   "raise it, or coarsen the grid (params.cells)")
@@ -129,6 +225,7 @@ def simulate(config: dict) -> Trajectory:
         wall.append(time.perf_counter() - start)
         substeps += steps
         iterations.append(most)
+        floored.append(low)
         frames.append(state)
         solids.append(solid)
         cells.append(info.solid_cells.ravel())
@@ -141,7 +238,8 @@ def simulate(config: dict) -> Trajectory:
     return Trajectory(
         mesh=mesh, positions=positions, velocities=np.stack([b.v for b in solids]), times=np.array(times),
         diagnostics={"mass": rho.sum(1) * grid.dx ** 2, "momentum": np.stack([b.momentum for b in solids]),
-                     "centre": positions.mean(1), "cg_iterations": np.array(iterations)},
+                     "centre": positions.mean(1), "cg_iterations": np.array(iterations),
+                     "floored": np.array(floored)},
         wall_time=float(sum(wall)), config=config, dt=t / max(substeps, 1), substeps=substeps,
         n_particles=len(solid.x), frame_wall_times=np.array(wall), node_type=node_type,
         fields={"x": centres, "density": rho, "velocity": velocity,
