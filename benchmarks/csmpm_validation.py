@@ -21,7 +21,15 @@ iterations per step, one thread.
 
 ``--pictures DIR`` also draws ``csmpm_sod.png`` (Sod at 128 and 512 cells over the exact
 solution), ``csmpm_circular_shock.png`` and ``csmpm_stair_flow.png`` (schlieren: exp(-k |grad
-rho| / max |grad rho|), Woodward and Colella's Mach 3 step at t = 0.5, 1, 2, 4, 60 cells per unit).
+rho| / max |grad rho|), Woodward and Colella's Mach 3 step at t = 0.5, 1, 2, 4, 60 cells per unit),
+and with the gas coupled to MPM solids ``csmpm_lifting_cylinder.png`` (200 cells per unit
+length), ``csmpm_shell_explosion.png`` (128^2) and ``csmpm_bullet.png`` (100 cells per unit
+length): schlieren of the gas, the body's nodes over it (``--picture-sets gas coupled`` picks).
+
+``--coupling`` also runs the coupled solver's closed-box check (a 4x pressure jump hitting an
+elastic disk, 64^2 cells, 300 steps): gas mass drift, the largest per-step difference between
+the momentum change of gas and solid together and the walls' pressure impulse, and the drift of
+the total energy (gas, the solid's kinetic and elastic).
 """
 
 from __future__ import annotations
@@ -135,6 +143,72 @@ def pictures(folder: Path, circular: int) -> None:
     plt.close(fig)
 
 
+def coupled_pictures(folder: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cases = [("lifting_cylinder", {"cells": 200}, (3, 6, 10), [0, 1, 0, 0.2], (3, 1),
+              "Mach 3 shock, cylinder on the floor"),
+             ("shell_explosion", {}, (1, 3, 6), [0, 1, 0, 1], (1, 3), "elastic ring, 10x pressure inside"),
+             ("bullet", {}, (2, 5, 10), [0, 3, 0, 1], (3, 1), "static barrel, 50x pressure behind the bullet")]
+    for name, params, frames, extent, layout, title in cases:
+        start = time.perf_counter()
+        t = datagen.simulate({"scene": name, "params": params})
+        dx = 1.0 / t.config["params"]["cells"]
+        print(f"{name}: {t.substeps} steps, {time.perf_counter() - start:.0f} s, CG iterations max "
+              f"{int(t.diagnostics['cg_iterations'].max())}, floored cell-steps {int(t.diagnostics['floored'].sum())}")
+        size = (10, 6.5) if layout == (3, 1) else (12, 4.2)
+        fig, ax = plt.subplots(*layout, figsize=size)
+        for a, k in zip(np.ravel(ax), frames, strict=True):
+            rho = np.where(t.fields["solid"][k], np.nan, t.fields["density"][k])
+            a.imshow(schlieren(_grid_field(t, rho, dx)).T, origin="lower", extent=extent, cmap="gray")
+            a.plot(t.positions[k, :, 0], t.positions[k, :, 1], ",", color="tab:orange")
+            a.set_xlim(extent[:2])
+            a.set_ylim(extent[2:])
+            a.set_title(f"{name.replace('_', ' ')} ({title}), t = {t.times[k]:.3g}", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(folder / f"csmpm_{name}.png", dpi=90)
+        plt.close(fig)
+
+
+def coupling(cells: int = 64, steps: int = 300) -> int:
+    """The closed-box conservation check of the coupled solver; returns the most CG iterations."""
+    from datagen import shapes
+    from datagen.csmpm import coupled, euler
+    from datagen.mpm.materials import NeoHookean
+
+    dx = 1.0 / cells
+    grid = euler.Grid((cells, cells), dx, (("wall", "wall"), ("wall", "wall")))
+    solid = coupled.Solid.from_mesh(shapes.disk(0.12, 0.5 * dx, center=(0.55, 0.5)),
+                                    NeoHookean(E=200.0, nu=0.3, density=3.0), p0=1.0)
+    x = (np.arange(cells) + 0.5) * dx
+    left = (x < 0.25)[:, None] & np.ones(cells, bool)
+    state = gas.conserved(np.where(left, 2.0, 1.0), np.zeros((2, cells, cells)), np.where(left, 4.0, 1.0))
+
+    def totals():
+        return (state[0].sum() * dx * dx, state[1:3].sum((1, 2)) * dx * dx + solid.momentum,
+                state[3].sum() * dx * dx + coupled.solid_energy(solid))
+
+    mass0, momentum, energy0 = totals()
+    worst, drift, most, start = 0.0, 0.0, 0, time.perf_counter()
+    for _ in range(steps):
+        dt = coupled.time_step(state, solid, grid)
+        state, solid, info = coupled.step(state, solid, grid, dt)
+        p = info.pressure
+        wall = -dt * dx * np.array([p[-1].sum() - p[0].sum(), p[:, -1].sum() - p[:, 0].sum()])
+        mass, now, energy = totals()
+        worst = max(worst, float(np.abs(now - momentum - wall).max()))
+        drift = max(drift, abs(energy / energy0 - 1.0))
+        momentum, most = now, max(most, info.cg_iterations)
+    print(f"coupling, closed box {cells}^2, {steps} steps ({time.perf_counter() - start:.1f} s): mass drift "
+          f"{abs(mass / mass0 - 1):.1e}, momentum against the walls' impulse {worst:.1e} per step (solid momentum "
+          f"{solid.momentum[0]:.3f}), energy drift {drift:.1e}, CG iterations max {most}")
+    return most
+
+
 def performance(resolutions: list[int], steps: int) -> None:
     from datagen.csmpm import euler
     from datagen.csmpm.scenes import _initial, resolve
@@ -160,14 +234,20 @@ def main(argv=None) -> None:
     parser.add_argument("--circular", type=int, nargs="+", default=[64, 128, 256])
     parser.add_argument("--circular-reference", type=int, default=512)
     parser.add_argument("--pictures", type=Path, default=None, help="folder for the pictures (none: no pictures)")
+    parser.add_argument("--picture-sets", nargs="+", choices=["gas", "coupled"], default=["gas", "coupled"])
+    parser.add_argument("--coupling", action="store_true", help="run the coupled solver's closed-box check")
     parser.add_argument("--performance", type=int, nargs="*", default=[], help="circular shock resolutions to time")
     parser.add_argument("--steps", type=int, default=5, help="steps timed per --performance resolution")
     args = parser.parse_args(argv)
     if args.performance:
         performance(args.performance, args.steps)
-    if args.pictures is not None:
-        pictures(args.pictures, args.circular[-1])
     cg_max, summary = 0, {}
+    if args.pictures is not None and "gas" in args.picture_sets:
+        pictures(args.pictures, args.circular[-1])
+    if args.pictures is not None and "coupled" in args.picture_sets:
+        coupled_pictures(args.pictures)
+    if args.coupling:
+        cg_max = coupling()
     print(f"{'case':<16}{'cells':>7}{'L1 exact':>12}{'L1 ref':>12}{'e_dm':>12}{'CG max':>8}{'steps':>8}{'s':>8}")
     for name in TUBES:
         reference = _tube(name, args.reference)

@@ -8,7 +8,7 @@ import numpy as np
 from bsms.data import GraphOptions, Scenario
 from bsms.fields import eulerian_state, initial_velocity, world_positions
 from bsms.motion import skill
-from bsms.rollout import DEFAULT_BOUND, body_size, field_metrics, rollout_metrics, rollouts
+from bsms.rollout import DEFAULT_BOUND, body_size, eulerian_metrics, rollout_metrics, rollouts
 from bsms.solver_runs import free_nodes
 
 __all__ = ["learned_rollouts"]
@@ -21,8 +21,7 @@ def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames
     hierarchies cached in ``cache_dir``. Metrics: :func:`~bsms.rollout.rollout_metrics` (with
     ``bound``, the relative error that marks a rollout unstable) and the skill measures of
     :func:`bsms.motion.skill` (``rest_rel_all``, ``vs_rest``, rigid and deformation parts) for
-    Lagrangian data, the first output field's
-    :func:`~bsms.rollout.field_metrics` for Eulerian data; timing in both. ``scenarios``: the
+    Lagrangian data, :func:`~bsms.rollout.eulerian_metrics` for Eulerian data; timing in both. ``scenarios``: the
     trajectories' scenarios if already built with ``graph`` (e.g. a dataset's), else built here."""
     spec = model.spec
     if scenarios is None:
@@ -48,9 +47,7 @@ def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames
             metrics = rollout_metrics(predicted, truth[: n + 1], free, size, bound)
             metrics.update(skill(predicted, truth[: n + 1], free, size, metrics["rel_all"]))
         else:
-            fields = field_metrics(spec, result.states, truth, free_nodes(trajectory), bound)
-            main = fields[spec.outputs[0].name]
-            metrics = {**main, "body_size": main["scale"], "field": spec.outputs[0].name, "fields": fields}
+            metrics = eulerian_metrics(spec, result.states, truth, free_nodes(trajectory), bound)
         metrics["seconds_per_step"] = result.seconds_per_step
         metrics["seconds_per_sim_second"] = result.seconds_per_step / scenario.frame_dt
         metrics["graph_nodes_ratio"] = float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body

@@ -128,6 +128,11 @@ def rest_lines(rows: list[dict]) -> list[str]:
     baseline = rest(rows)
     if baseline is None:
         return []
+    field = next((r["field"] for r in rows if r.get("field")), None)
+    if field:  # Eulerian data: the trivial answer of a fixed mesh is persistence
+        return [f"Persistence (the first frame's fields held for ever): RMSE all of {field} / its scale "
+                f"{fmt(baseline)} on these trajectories (dotted line on the chart); a model above it has learned less "
+                "than nothing.", ""]
     return [f"Body at rest (no motion predicted, every free node kept where it is at frame 0): RMSE all / body size "
             f"{fmt(baseline)} on these trajectories (dotted line on the chart); a model above it has learned less than "
             "nothing.", ""]
@@ -187,6 +192,12 @@ def skill_lines(learned: dict[str, list[dict]]) -> list[str]:
               if metrics and all("vs_rest" in m for m in metrics)]
     if not tables:
         return []
+    field = next((m["field"] for metrics in learned.values() for m in metrics if m.get("field")), None)
+    if field:
+        return ["## Skill per trajectory", "",
+                f"Eulerian data: errors of {field} / its scale; `at rest` is persistence (the first frame's fields "
+                "held for ever) and `vs at rest` the model's RMSE over all steps / persistence's (above 1: it has "
+                "learned nothing).", "", *[line for t in tables for line in (t, "")]]
     return ["## Skill per trajectory", "",
             "`vs at rest` = the model's RMSE over all steps / that of predicting no motion (above 1: it has learned "
             "nothing). Each error, and the true motion from frame 0, is split per frame by the best rigid fit "

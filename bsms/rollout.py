@@ -19,6 +19,7 @@ bounding box). A rollout is unstable from the first step whose error exceeds
 
 from __future__ import annotations
 
+import math
 import resource
 import sys
 import time
@@ -34,8 +35,8 @@ from bsms.models.precision import network_dtype
 from bsms.motion import SKILL_KEYS
 
 __all__ = [
-    "Rollout", "rollout", "rollouts", "rollout_metrics", "field_metrics", "summarize", "body_size", "peak_memory_mb",
-    "DEFAULT_BOUND", "integrate",
+    "Rollout", "rollout", "rollouts", "eulerian_metrics", "rollout_metrics", "field_metrics", "summarize", "body_size",
+    "peak_memory_mb", "DEFAULT_BOUND", "integrate",
 ]
 
 DEFAULT_BOUND = 0.5  # relative error (of the body size) at which a rollout counts as unstable
@@ -387,6 +388,21 @@ def field_metrics(spec, predicted: np.ndarray, truth: np.ndarray, mask: np.ndarr
         out[f.name] = rollout_metrics(predicted[..., cols], truth[..., cols], mask, scale or 1.0, bound)
         out[f.name]["scale"] = out[f.name].pop("body_size")
     return out
+
+
+def eulerian_metrics(spec, predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray,
+                     bound: float = DEFAULT_BOUND) -> dict:
+    """An Eulerian rollout's metrics: its first output field's :func:`field_metrics` (every
+    field's under ``fields``) beside persistence, the trivial answer of a fixed mesh -- the first
+    frame held for ever: ``rest_rel_all`` its relative RMSE over all steps and ``vs_rest`` the
+    rollout's over it (the at-rest yardstick of Lagrangian data)."""
+    name = spec.outputs[0].name
+    fields = field_metrics(spec, predicted, truth, mask, bound)
+    persisting = field_metrics(spec, np.repeat(truth[:1], len(truth), axis=0), truth, mask, bound)[name]
+    main = fields[name]
+    rest = persisting["rel_all"]
+    return {**main, "body_size": main["scale"], "field": name, "fields": fields, "rest_rel_all": rest,
+            "vs_rest": main["rel_all"] / rest if rest > 0 else math.inf}
 
 
 def summarize(metrics: list[dict]) -> dict:

@@ -19,8 +19,9 @@ import numpy as np
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
 from bsms.data import NodeType
+from bsms.fields import eulerian_state, spec_of
 from bsms.motion import skill
-from bsms.rollout import body_size, rollout_metrics
+from bsms.rollout import body_size, eulerian_metrics, rollout_metrics
 from datagen import simulate
 from datagen.config import ConfigError
 from datagen.mpm import SimulationError
@@ -174,6 +175,13 @@ def _measure(trajectory, config: dict, frames: int, bound: float, threads: int |
         return _failed(str(exc).splitlines()[0], time.perf_counter() - start, frames, trajectory)
     except ConfigError as exc:  # e.g. a doubled solver.cfl above 1
         return {"skipped": str(exc).splitlines()[0]}
+    spec = spec_of(trajectory)
+    if not spec.is_lagrangian:  # Eulerian data (a fixed mesh): the fields, on the same cells only
+        if other.mesh.n_nodes != trajectory.mesh.n_nodes:
+            return {"skipped": "an Eulerian run on another grid has no common nodes to compare on"}
+        state, stored = eulerian_state(spec, other), eulerian_state(spec, trajectory)[: frames + 1]
+        metrics = eulerian_metrics(spec, state, stored, free_nodes(trajectory), bound)
+        return _timed(metrics, trajectory, other, frames, ground_truth, lambda: float(np.abs(state - stored).max()))
     truth = trajectory.positions[: frames + 1]
     positions = other.positions
     if positions.shape[1:] != truth.shape[1:]:
@@ -183,11 +191,18 @@ def _measure(trajectory, config: dict, frames: int, bound: float, threads: int |
     free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
     metrics = rollout_metrics(positions, truth, free, size, bound)
     metrics.update(skill(positions, truth, free, size, metrics["rel_all"]))
+    return _timed(metrics, trajectory, other, frames, ground_truth,
+                  lambda: float(np.abs(other.positions - truth).max()))
+
+
+def _timed(metrics: dict, trajectory, other, frames: int, ground_truth: bool, difference) -> dict:
+    """``metrics`` with the run's timing and time step (and, for the ground truth, its largest
+    difference from the stored trajectory: ``difference()``)."""
     metrics["seconds_per_sim_second"] = other.wall_time / (frames * frame_dt(trajectory))
     metrics["seconds_per_step"] = other.wall_time / frames
     metrics.update(dt=float(other.dt), dt_factor=float(other.dt / trajectory.dt), substeps=int(other.substeps))
     if ground_truth:
-        metrics["max_difference_from_stored"] = float(np.abs(other.positions - truth).max())
+        metrics["max_difference_from_stored"] = difference()
     return metrics
 
 

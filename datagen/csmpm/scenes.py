@@ -39,23 +39,29 @@ from ..trajectory import NodeType, Trajectory
 from . import euler, gas
 from .coupled_scenes import COUPLED_DEFAULTS, COUPLED_OUTPUT, check
 from .coupled_scenes import simulate as simulate_coupled
+from .flow import FLOW_DEFAULTS, FLOW_OUTPUT
+from .flow import check as check_flow
+from .flow import simulate as simulate_flow
 
 __all__ = ["GAS_SCENES", "resolve", "simulate"]
 
-GAS_SCENES = ("shock_tube", "circular_shock", "stair_flow", *COUPLED_DEFAULTS)
-"""The scenes CSMPM runs: gas alone, and gas with MPM solids (:mod:`datagen.csmpm.coupled_scenes`)."""
+GAS_SCENES = ("shock_tube", "circular_shock", "stair_flow", *FLOW_DEFAULTS, *COUPLED_DEFAULTS)
+"""The scenes CSMPM runs: gas alone (``shock_channel``: :mod:`datagen.csmpm.flow`), and gas with
+MPM solids (:mod:`datagen.csmpm.coupled_scenes`)."""
 DEFAULTS = {
     "shock_tube": {"left": [1.0, 0.0, 1.0], "right": [0.125, 0.0, 0.1], "cells": 400, "length": 1.0,
                    "interface": 0.5, "gamma": gas.GAMMA, "boundaries": "open"},
     "circular_shock": {"inside": [1.0, 1.0], "outside": [0.125, 0.1], "radius": 0.4, "cells": 128, "length": 2.0,
                        "gamma": gas.GAMMA},
     "stair_flow": {"inflow": [1.4, 3.0, 1.0], "size": [3.0, 1.0], "step": [0.6, 0.2], "cells": 40, "gamma": gas.GAMMA},
-    **COUPLED_DEFAULTS,
+    **FLOW_DEFAULTS, **COUPLED_DEFAULTS,
 }
-SOLVER = {"cfl": 0.5, "acoustic": 1.0, "max_substeps": 100_000}
+SOLVER = {"cfl": 0.5, "acoustic": 1.0, "max_substeps": 100_000, "threads": 0}
+# threads: accepted like the MPM scenes' solver.threads (evaluations set it for every solver run);
+# the gas solver is numpy and scipy on one thread whatever it says
 OUTPUT = {"shock_tube": {"frames": 20, "frame_interval": 0.01},
           "circular_shock": {"frames": 10, "frame_interval": 0.025},
-          "stair_flow": {"frames": 20, "frame_interval": 0.2}, **COUPLED_OUTPUT}
+          "stair_flow": {"frames": 20, "frame_interval": 0.2}, **FLOW_OUTPUT, **COUPLED_OUTPUT}
 
 
 def _number(value, key: str, *, low=None, integer=False) -> float:
@@ -82,6 +88,8 @@ def _params(name: str, p: dict) -> dict:
     """Scene ``name``'s params checked (types, ranges)."""
     if name in COUPLED_DEFAULTS:
         return check(name, p, _number)
+    if name in FLOW_DEFAULTS:
+        return check_flow(name, p, _number, _state)
     p["cells"] = _number(p["cells"], "params.cells", low=7 if name != "stair_flow" else 1, integer=True)
     p["gamma"] = float(_number(p["gamma"], "params.gamma", low=1))
     if name == "stair_flow":
@@ -119,8 +127,10 @@ def _params(name: str, p: dict) -> dict:
 
 def resolve(config: dict) -> dict:
     """The full config of a gas scene (defaults filled in, every value checked)."""
-    reject_unknown(config, {"scene", "params", "solver", "output", "seed"})
+    reject_unknown(config, {"scene", "params", "solver", "output", "seed", "field_spec"})  # the spec: written, not read
     name = config["scene"]
+    if isinstance(config.get("output"), dict) and "step_diagnostics" in config["output"]:  # the MPM scenes' key:
+        config = {**config, "output": {k: v for k, v in config["output"].items() if k != "step_diagnostics"}}  # no use
     p, s, o = (section(config, n, d, f"scene {name!r}") for n, d in (("params", DEFAULTS[name]),
                                                                      ("solver", SOLVER), ("output", OUTPUT[name])))
     p = _params(name, p)
@@ -129,6 +139,8 @@ def resolve(config: dict) -> dict:
     if s["acoustic"] < 0:
         raise ConfigError(f"config key 'solver.acoustic' must be >= 0, got {s['acoustic']!r}")
     s["max_substeps"] = _number(s["max_substeps"], "solver.max_substeps", low=0, integer=True)
+    if isinstance(s["threads"], bool) or not isinstance(s["threads"], int) or s["threads"] < 0:
+        raise ConfigError(f"config key 'solver.threads' must be an integer >= 0, got {s['threads']!r}")
     o["frames"] = _number(o["frames"], "output.frames", low=0, integer=True)
     o["frame_interval"] = float(_number(o["frame_interval"], "output.frame_interval", low=0))
     seed = config.get("seed", 0)
@@ -192,6 +204,8 @@ def simulate(config: dict) -> Trajectory:
     config = resolve(config)
     if config["scene"] in COUPLED_DEFAULTS:
         return simulate_coupled(config)
+    if config["scene"] in FLOW_DEFAULTS:
+        return simulate_flow(config, _grid_mesh)
     p, s, o = config["params"], config["solver"], config["output"]
     grid, state, mesh, kept = _initial(config["scene"], p)
     x = mesh.nodes
