@@ -24,7 +24,8 @@ solution), ``csmpm_circular_shock.png`` and ``csmpm_stair_flow.png`` (schlieren:
 rho| / max |grad rho|), Woodward and Colella's Mach 3 step at t = 0.5, 1, 2, 4, 60 cells per unit),
 and with the gas coupled to MPM solids ``csmpm_lifting_cylinder.png`` (200 cells per unit
 length), ``csmpm_shell_explosion.png`` (128^2) and ``csmpm_bullet.png`` (100 cells per unit
-length): schlieren of the gas, the body's nodes over it (``--picture-sets gas coupled`` picks).
+length): schlieren of the gas, solid cells blue, the body's nodes orange over them
+(``--picture-sets gas coupled`` picks).
 
 ``--coupling`` also runs the coupled solver's closed-box check (a 4x pressure jump hitting an
 elastic disk, 64^2 cells, 300 steps): gas mass drift, the largest per-step difference between
@@ -164,7 +165,8 @@ def coupled_pictures(folder: Path) -> None:
         fig, ax = plt.subplots(*layout, figsize=size)
         for a, k in zip(np.ravel(ax), frames, strict=True):
             rho = np.where(t.fields["solid"][k], np.nan, t.fields["density"][k])
-            a.imshow(schlieren(_grid_field(t, rho, dx)).T, origin="lower", extent=extent, cmap="gray")
+            cmap = matplotlib.colormaps["gray"].with_extremes(bad="tab:blue")  # solid cells
+            a.imshow(schlieren(_grid_field(t, rho, dx)).T, origin="lower", extent=extent, cmap=cmap)
             a.plot(t.positions[k, :, 0], t.positions[k, :, 1], ",", color="tab:orange")
             a.set_xlim(extent[:2])
             a.set_ylim(extent[2:])

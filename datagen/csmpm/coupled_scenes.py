@@ -24,7 +24,8 @@ it and still gas ``outside`` everywhere else; the bullet is fired out of the bar
 The Trajectory's mesh is the body's, its positions and velocities the body's nodes; its
 ``fields`` hold the gas on every cell: ``x`` (N, 2) cell centres (row-major over x then y),
 ``density``, ``pressure`` (frames + 1, N) and ``velocity`` (frames + 1, N, 2) (inside the solid:
-the gas it encloses), and ``solid`` (frames + 1, N) the cells the solve took as solid; its
+the gas it encloses), and ``solid`` (frames + 1, N) the cells the solve took as solid (the body's
+and the static ones); its
 diagnostics per frame: gas ``mass``, the solid's ``momentum`` and ``centre``, ``cg_iterations``
 (the most of any step reaching the frame) and ``floored`` (gas cell-steps whose pressure was
 floored: :func:`datagen.csmpm.coupled.step`).
@@ -57,7 +58,7 @@ COUPLED_DEFAULTS = {
 }
 COUPLED_OUTPUT = {"lifting_cylinder": {"frames": 10, "frame_interval": 0.03},
                   "shell_explosion": {"frames": 10, "frame_interval": 0.02},
-                  "bullet": {"frames": 10, "frame_interval": 0.03}}
+                  "bullet": {"frames": 10, "frame_interval": 0.06}}
 ELASTIC = ("neo_hookean", "linear", "fixed_corotated")
 
 
@@ -205,7 +206,8 @@ def simulate(config: dict) -> Trajectory:
     """Run a resolved coupled scene (:func:`datagen.csmpm.scenes.resolve`)."""
     p, s, o = config["params"], config["solver"], config["output"]
     grid, state, solid, mesh, centres = _setup(config["scene"], p)
-    frames, solids, cells, wall, times, iterations = [state], [solid], [np.zeros(len(centres), bool)], [0.0], [0.0], [0]
+    start_cells = np.zeros(len(centres), bool) if grid.solid is None else grid.solid.ravel().copy()
+    frames, solids, cells, wall, times, iterations = [state], [solid], [start_cells], [0.0], [0.0], [0]
     floored = [0]
     t, substeps = 0.0, 0
     for k in range(1, o["frames"] + 1):
@@ -228,7 +230,7 @@ def simulate(config: dict) -> Trajectory:
         floored.append(low)
         frames.append(state)
         solids.append(solid)
-        cells.append(info.solid_cells.ravel())
+        cells.append((info.solid_cells if grid.solid is None else info.solid_cells | grid.solid).ravel())
         times.append(t)
     stacked = np.stack(frames).reshape(len(frames), 4, -1)
     rho = stacked[:, 0]
