@@ -51,9 +51,7 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 import torch
-from scipy.sparse.linalg import LinearOperator, cg
 
 from . import euler
 from .gas import GAMMA, pressure, sound_speed
@@ -312,21 +310,7 @@ def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravit
         shares.append(np.where(open_face, m_solid / np.where(open_face, m_face, 1.0), 0.0))
     diagonal = (1.0 / (stiffness * dt ** 2)).ravel()
     rhs = diagonal * p_star.ravel() - euler._divergence(u_star, grid).ravel() / dt
-    if grid.solid is not None:
-        diagonal, rhs = np.where(static.ravel(), 1.0, diagonal), np.where(static.ravel(), p_star.ravel(), rhs)
-    matrix = (euler._laplacian(coefficients, grid) + sp.diags(diagonal)).tocsr()
-    inverse = 1.0 / matrix.diagonal()
-    iterations = [0]
-
-    def count(_):
-        iterations[0] += 1
-
-    solution, failed = cg(matrix, rhs, x0=p_star.ravel(), rtol=rtol, atol=0.0, maxiter=10 * rhs.size,
-                          M=LinearOperator(matrix.shape, lambda v: inverse * v), callback=count)
-    if failed:
-        raise RuntimeError(f"the coupled pressure solve did not converge in {failed} CG iterations (dt {dt:g})")
-    residual = float(np.linalg.norm(matrix @ solution - rhs) / max(np.linalg.norm(rhs), 1e-300))
-    p = solution.reshape(grid.shape)
+    p, iterations, residual = euler.solve_pressure(coefficients, diagonal, rhs, p_star, grid, dt, rtol)
 
     # corrections: the gas by face pressures less the solid's share, the solid on its face nodes
     out = advected.copy()
@@ -376,7 +360,7 @@ def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravit
         kinetic = 0.5 * (out[1:-1, low] ** 2).sum(axis=0) / out[0, low]
         out[-1, low] = kinetic + floor / (gamma - 1.0)
     new_solid = _mpm_update(solid, grid, stencils, solid_mass, solid_velocity, dt, gravity)
-    return out, new_solid, CoupledInfo(dt, iterations[0], residual, p, moving, int(low.sum()))
+    return out, new_solid, CoupledInfo(dt, iterations, residual, p, moving, int(low.sum()))
 
 
 def _mpm_update(solid: Solid, grid: euler.Grid, stencils, masses, velocities, dt: float, gravity) -> Solid:

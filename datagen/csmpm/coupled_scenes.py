@@ -34,7 +34,6 @@ floored: :func:`datagen.csmpm.coupled.step`).
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
@@ -43,6 +42,7 @@ from ..config import ConfigError
 from ..mpm.materials import MATERIALS
 from ..trajectory import NodeType, Trajectory
 from . import coupled, euler, gas
+from .frames import frames
 
 __all__ = ["COUPLED_DEFAULTS", "COUPLED_OUTPUT", "check", "simulate", "shock_state"]
 
@@ -207,32 +207,31 @@ def simulate(config: dict) -> Trajectory:
     p, s, o = config["params"], config["solver"], config["output"]
     grid, state, solid, mesh, centres = _setup(config["scene"], p)
     start_cells = np.zeros(len(centres), bool) if grid.solid is None else grid.solid.ravel().copy()
-    frames, solids, cells, wall, times, iterations = [state], [solid], [start_cells], [0.0], [0.0], [0]
-    floored = [0]
-    t, substeps = 0.0, 0
-    for k in range(1, o["frames"] + 1):
-        end, start, most, steps, low = k * o["frame_interval"], time.perf_counter(), 0, 0, 0
-        while t < end - 1e-12 * end:
-            dt = min(coupled.time_step(state, solid, grid, s["cfl"]), end - t)
-            state, solid, info = coupled.step(state, solid, grid, dt, gamma=p["gamma"])
-            t, steps, most = (end if dt == end - t else t + dt), steps + 1, max(most, info.cg_iterations)
-            low += info.floored
-            if steps > s["max_substeps"]:
-                raise ConfigError(f"frame {k} took more than solver.max_substeps ({s['max_substeps']:,}) steps; "
-                                  "raise it, or coarsen the grid (params.cells)")
-            if not (np.all(np.isfinite(state)) and np.all(state[0] > 0) and np.all(gas.pressure(state, p["gamma"]) > 0)
-                    and np.all(np.isfinite(solid.x))):
-                raise RuntimeError(f"{config['scene']}: the state became non-physical at t = {t:.6g} s, step "
-                                   f"{substeps + steps}; lower solver.cfl or refine params.cells")
-        wall.append(time.perf_counter() - start)
+    states, solids, cells, wall, times, iterations, floored = [state], [solid], [start_cells], [0.0], [0.0], [0], [0]
+    run = {"state": state, "solid": solid, "floored": 0, "cells": start_cells}
+    substeps = 0
+
+    def advance(t: float, remaining: float):
+        dt = min(coupled.time_step(run["state"], run["solid"], grid, s["cfl"]), remaining)
+        run["state"], run["solid"], info = coupled.step(run["state"], run["solid"], grid, dt, gamma=p["gamma"])
+        run["floored"] += info.floored
+        run["cells"] = info.solid_cells if grid.solid is None else info.solid_cells | grid.solid
+        if not (gas.physical(run["state"], p["gamma"]) and np.all(np.isfinite(run["solid"].x))):
+            raise RuntimeError(f"{config['scene']}: the state became non-physical at t = {t + dt:.6g} s; lower "
+                               "solver.cfl or refine params.cells")
+        return dt, info.cg_iterations
+
+    for _, t, steps, most, seconds in frames(o, s["max_substeps"], advance):
+        wall.append(seconds)
         substeps += steps
         iterations.append(most)
-        floored.append(low)
-        frames.append(state)
-        solids.append(solid)
-        cells.append((info.solid_cells if grid.solid is None else info.solid_cells | grid.solid).ravel())
+        floored.append(run["floored"])
+        run["floored"] = 0
+        states.append(run["state"])
+        solids.append(run["solid"])
+        cells.append(run["cells"].ravel())
         times.append(t)
-    stacked = np.stack(frames).reshape(len(frames), 4, -1)
+    stacked = np.stack(states).reshape(len(states), 4, -1)
     rho = stacked[:, 0]
     velocity = np.moveaxis(stacked[:, 1:-1] / rho[:, None], 1, -1)
     positions = np.stack([b.x for b in solids])
@@ -242,8 +241,8 @@ def simulate(config: dict) -> Trajectory:
         diagnostics={"mass": rho.sum(1) * grid.dx ** 2, "momentum": np.stack([b.momentum for b in solids]),
                      "centre": positions.mean(1), "cg_iterations": np.array(iterations),
                      "floored": np.array(floored)},
-        wall_time=float(sum(wall)), config=config, dt=t / max(substeps, 1), substeps=substeps,
-        n_particles=len(solid.x), frame_wall_times=np.array(wall), node_type=node_type,
+        wall_time=float(sum(wall)), config=config, dt=times[-1] / max(substeps, 1), substeps=substeps,
+        n_particles=len(solids[-1].x), frame_wall_times=np.array(wall), node_type=node_type,
         fields={"x": centres, "density": rho, "velocity": velocity,
                 "pressure": gas.pressure(np.moveaxis(stacked, 1, 0), p["gamma"]), "solid": np.stack(cells)},
     )

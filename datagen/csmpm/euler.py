@@ -40,7 +40,8 @@ from scipy.sparse.linalg import LinearOperator, cg
 
 from .gas import GAMMA, pressure, sound_speed
 
-__all__ = ["Grid", "BOUNDARIES", "advective_flux", "advect", "project", "step", "time_step", "StepInfo"]
+__all__ = ["Grid", "BOUNDARIES", "advective_flux", "advect", "solve_pressure", "project", "step", "time_step",
+           "StepInfo"]
 
 BOUNDARIES = ("wall", "open", "inlet")
 EPSILON = 1e-6  # the WENO weights' guard against division by zero
@@ -248,6 +249,30 @@ def _laplacian(coefficients: list[np.ndarray], grid: Grid) -> sp.csr_matrix:
     return matrix
 
 
+def solve_pressure(coefficients: list[np.ndarray], diagonal: np.ndarray, rhs: np.ndarray, p_star: np.ndarray,
+                   grid: Grid, dt: float, rtol: float = 1e-10) -> tuple[np.ndarray, int, float]:
+    """The cells' pressures of the system -div(c_f grad p) + diag p = rhs (face coefficients c_f,
+    :func:`_laplacian`; ``diagonal`` and ``rhs`` flat), static solid cells held at p* (their rows
+    replaced by p = p*), by Jacobi-preconditioned CG from p*. -> (p, CG iterations, relative
+    residual); RuntimeError when CG does not converge."""
+    if grid.solid is not None:
+        solid = grid.solid.ravel()
+        diagonal, rhs = np.where(solid, 1.0, diagonal), np.where(solid, p_star.ravel(), rhs)
+    matrix = (_laplacian(coefficients, grid) + sp.diags(diagonal)).tocsr()
+    inverse = 1.0 / matrix.diagonal()
+    iterations = [0]
+
+    def count(_):
+        iterations[0] += 1
+
+    solution, failed = cg(matrix, rhs, x0=p_star.ravel(), rtol=rtol, atol=0.0, maxiter=10 * rhs.size,
+                          M=LinearOperator(matrix.shape, lambda v: inverse * v), callback=count)
+    if failed:
+        raise RuntimeError(f"the pressure solve did not converge in {failed} CG iterations (dt {dt:g})")
+    residual = float(np.linalg.norm(matrix @ solution - rhs) / max(np.linalg.norm(rhs), 1e-300))
+    return solution.reshape(grid.shape), iterations[0], residual
+
+
 def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gamma: float = GAMMA,
             rtol: float = 1e-10) -> tuple[np.ndarray, int, float]:
     """The state after the pressure solve and correction (module docstring, steps 2-3) of the
@@ -260,22 +285,7 @@ def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gam
     u_faces = [_faces(velocity[axis], axis, grid, "velocity") for axis in range(grid.dim)]
     diagonal = (1.0 / (stiffness * dt ** 2)).ravel()
     rhs = diagonal * p_star.ravel() - _divergence(u_faces, grid).ravel() / dt
-    if grid.solid is not None:
-        solid = grid.solid.ravel()
-        diagonal, rhs = np.where(solid, 1.0, diagonal), np.where(solid, p_star.ravel(), rhs)
-    matrix = (_laplacian(_face_coefficients(rho, grid), grid) + sp.diags(diagonal)).tocsr()
-    inverse = 1.0 / matrix.diagonal()
-    iterations = [0]
-
-    def count(_):
-        iterations[0] += 1
-
-    solution, failed = cg(matrix, rhs, x0=p_star.ravel(), rtol=rtol, atol=0.0, maxiter=10 * rhs.size,
-                          M=LinearOperator(matrix.shape, lambda v: inverse * v), callback=count)
-    if failed:
-        raise RuntimeError(f"the pressure solve did not converge in {failed} CG iterations (dt {dt:g})")
-    residual = float(np.linalg.norm(matrix @ solution - rhs) / max(np.linalg.norm(rhs), 1e-300))
-    p = solution.reshape(grid.shape)
+    p, iterations, residual = solve_pressure(_face_coefficients(rho, grid), diagonal, rhs, p_star, grid, dt, rtol)
     out = advected.copy()
     energy_flux = []
     for axis, coefficient in enumerate(_face_coefficients(rho, grid)):
@@ -290,7 +300,7 @@ def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gam
     out[-1] -= dt * _divergence(energy_flux, grid)
     if grid.solid is not None:
         out[:, grid.solid] = advected[:, grid.solid]
-    return out, iterations[0], residual
+    return out, iterations, residual
 
 
 def time_step(state: np.ndarray, grid: Grid, cfl: float = 0.5, acoustic: float = 0.0, gamma: float = GAMMA) -> float:

@@ -23,14 +23,13 @@ other cell is free.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 from matplotlib.path import Path as Outline
 
 from ..config import ConfigError
 from ..trajectory import NodeType, Trajectory
 from . import euler, gas
+from .frames import gas_frames
 
 __all__ = ["FLOW_DEFAULTS", "FLOW_OUTPUT", "check", "simulate", "DEEPMIND_TYPES"]
 
@@ -110,25 +109,8 @@ def simulate(config: dict, grid_mesh) -> Trajectory:
     """Run a resolved ``shock_channel`` config (``grid_mesh``: the gas scenes' cell triangulation)."""
     p, s, o = config["params"], config["solver"], config["output"]
     grid, state, mesh, kept, codes = _setup(p, grid_mesh)
-    frames, wall, times, iterations, t, substeps = [state], [0.0], [0.0], [0], 0.0, 0
-    for k in range(1, o["frames"] + 1):
-        end, start, most, steps = k * o["frame_interval"], time.perf_counter(), 0, 0
-        while t < end - 1e-12 * end:
-            dt = min(euler.time_step(state, grid, s["cfl"], s["acoustic"], p["gamma"]), end - t)
-            state, info = euler.step(state, grid, dt, p["gamma"])
-            t, steps, most = (end if dt == end - t else t + dt), steps + 1, max(most, info.cg_iterations)
-            if steps > s["max_substeps"]:
-                raise ConfigError(f"frame {k} took more than solver.max_substeps ({s['max_substeps']:,}) steps; "
-                                  "raise it, or coarsen the grid (params.cells)")
-            if not np.all(np.isfinite(state)) or np.any(state[0] <= 0) or np.any(gas.pressure(state, p["gamma"]) <= 0):
-                raise RuntimeError(f"shock_channel: the gas state became non-physical at t = {t:.6g} s; lower "
-                                   "solver.cfl")
-        wall.append(time.perf_counter() - start)
-        substeps += steps
-        iterations.append(most)
-        frames.append(state)
-        times.append(t)
-    stacked = np.stack(frames).reshape(len(frames), 4, -1)[:, :, kept]
+    states, times, wall, iterations, substeps = gas_frames("shock_channel", grid, state, p["gamma"], s, o)
+    stacked = np.stack(states).reshape(len(states), 4, -1)[:, :, kept]
     rho = stacked[:, 0]
     velocity = np.moveaxis(stacked[:, 1:3] / rho[:, None], 1, -1)
     pressure = gas.pressure(np.moveaxis(stacked, 1, 0), p["gamma"])
@@ -138,11 +120,12 @@ def simulate(config: dict, grid_mesh) -> Trajectory:
     n = len(mesh.nodes)
     volume = grid.dx ** 2
     return Trajectory(
-        mesh=mesh, positions=np.broadcast_to(mesh.nodes[None], (len(frames), n, 2)).copy(), velocities=velocity.copy(),
+        mesh=mesh, positions=np.broadcast_to(mesh.nodes[None], (len(states), n, 2)).copy(), velocities=velocity.copy(),
         times=np.array(times), wall_time=float(sum(wall)),
         config={**config, "field_spec": FIELD_SPEC},
         diagnostics={"mass": rho.sum(1) * volume, "cg_iterations": np.array(iterations)},
-        dt=t / max(substeps, 1), substeps=substeps, n_particles=0, frame_wall_times=np.array(wall), node_type=role,
+        dt=times[-1] / max(substeps, 1), substeps=substeps, n_particles=0, frame_wall_times=np.array(wall),
+        node_type=role,
         fields=fields,
     )
 

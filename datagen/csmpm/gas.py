@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["GAMMA", "conserved", "primitive", "pressure", "sound_speed", "RiemannSolution", "exact_riemann"]
+__all__ = ["GAMMA", "conserved", "primitive", "pressure", "sound_speed", "physical", "RiemannSolution", "exact_riemann"]
 
 GAMMA = 1.4
 
@@ -42,6 +42,11 @@ def primitive(state: np.ndarray, gamma: float = GAMMA) -> tuple[np.ndarray, np.n
 def sound_speed(density, pressure, gamma: float = GAMMA) -> np.ndarray:
     """c = sqrt(gamma p / rho)."""
     return np.sqrt(gamma * np.asarray(pressure) / np.asarray(density))
+
+
+def physical(state: np.ndarray, gamma: float = GAMMA) -> bool:
+    """Whether a conserved state (d + 2, ...) is finite with positive density and pressure."""
+    return bool(np.all(np.isfinite(state)) and np.all(state[0] > 0) and np.all(pressure(state, gamma) > 0))
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,6 @@ out: ``x`` (N, 2) their centres), and the mesh triangulates them.
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
@@ -42,6 +41,7 @@ from .coupled_scenes import simulate as simulate_coupled
 from .flow import FLOW_DEFAULTS, FLOW_OUTPUT
 from .flow import check as check_flow
 from .flow import simulate as simulate_flow
+from .frames import gas_frames
 
 __all__ = ["GAS_SCENES", "resolve", "simulate"]
 
@@ -209,27 +209,8 @@ def simulate(config: dict) -> Trajectory:
     p, s, o = config["params"], config["solver"], config["output"]
     grid, state, mesh, kept = _initial(config["scene"], p)
     x = mesh.nodes
-    frames, wall, substeps, times = [state], [0.0], 0, [0.0]
-    t, iterations = 0.0, [0]
-    for k in range(1, o["frames"] + 1):
-        end, start, most = k * o["frame_interval"], time.perf_counter(), 0
-        steps = 0
-        while t < end - 1e-12 * end:
-            dt = min(euler.time_step(state, grid, s["cfl"], s["acoustic"], p["gamma"]), end - t)
-            state, info = euler.step(state, grid, dt, p["gamma"])
-            t, steps, most = (end if dt == end - t else t + dt), steps + 1, max(most, info.cg_iterations)
-            if steps > s["max_substeps"]:
-                raise ConfigError(f"frame {k} took more than solver.max_substeps ({s['max_substeps']:,}) steps; "
-                                  "raise it, or coarsen the grid (params.cells)")
-            if not np.all(np.isfinite(state)) or np.any(state[0] <= 0) or np.any(gas.pressure(state, p["gamma"]) <= 0):
-                raise RuntimeError(f"{config['scene']}: the gas state became non-physical (density or pressure <= 0) "
-                                   f"at t = {t:.6g} s, step {substeps + steps}; lower solver.cfl")
-        wall.append(time.perf_counter() - start)
-        substeps += steps
-        iterations.append(most)
-        frames.append(state)
-        times.append(t)
-    stacked = np.stack(frames).reshape(len(frames), grid.dim + 2, -1)  # (T, d + 2, N)
+    states, times, wall, iterations, substeps = gas_frames(config["scene"], grid, state, p["gamma"], s, o)
+    stacked = np.stack(states).reshape(len(states), grid.dim + 2, -1)  # (T, d + 2, N)
     if kept is not None:
         stacked = stacked[:, :, kept]
     volume = grid.dx ** grid.dim
@@ -240,9 +221,9 @@ def simulate(config: dict) -> Trajectory:
                    "energy": stacked[:, -1].sum(1) * volume, "cg_iterations": np.array(iterations)}
     n = len(x)
     return Trajectory(
-        mesh=mesh, positions=np.broadcast_to(x[None], (len(frames), n, grid.dim)).copy(),
+        mesh=mesh, positions=np.broadcast_to(x[None], (len(states), n, grid.dim)).copy(),
         velocities=velocity.copy(), times=np.array(times), diagnostics=diagnostics,
-        wall_time=float(sum(wall)), config=config, dt=t / max(substeps, 1), substeps=substeps, n_particles=0,
+        wall_time=float(sum(wall)), config=config, dt=times[-1] / max(substeps, 1), substeps=substeps, n_particles=0,
         frame_wall_times=np.array(wall), node_type=np.full(n, NodeType.FREE, np.int64),
         fields={"x": x[:, 0].copy() if grid.dim == 1 else x.copy(), "density": rho,
                 "velocity": velocity[..., 0] if grid.dim == 1 else velocity, "pressure": pressure},
