@@ -175,8 +175,8 @@ def _measure(trajectory, config: dict, frames: int, bound: float, threads: int |
         return _failed(str(exc).splitlines()[0], time.perf_counter() - start, frames, trajectory)
     except ConfigError as exc:  # e.g. a doubled solver.cfl above 1
         return {"skipped": str(exc).splitlines()[0]}
-    spec = spec_of(trajectory)
-    if not spec.is_lagrangian:  # Eulerian data (a fixed mesh): the fields, on the same cells only
+    spec = spec_of(trajectory) if (trajectory.config or {}).get("field_spec") else None
+    if spec is not None and not spec.is_lagrangian:  # Eulerian data (a fixed mesh): the fields, on the same cells
         if other.mesh.n_nodes != trajectory.mesh.n_nodes:
             return {"skipped": "an Eulerian run on another grid has no common nodes to compare on"}
         state, stored = eulerian_state(spec, other), eulerian_state(spec, trajectory)[: frames + 1]

@@ -268,25 +268,14 @@ def _blocked_faces(volume: np.ndarray, grid: euler.Grid) -> list[np.ndarray]:
     return out
 
 
-def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravity=None, gamma: float = GAMMA,
-         rtol: float = 1e-10, floor_ratio: float = 1e-3) -> tuple[np.ndarray, Solid, CoupledInfo]:
-    """One coupled step of dt (module docstring): the gas state (d + 2, *cells) and the solid
-    after it, and what the step did. ``grid.solid`` may hold static solid cells besides. A gas
-    cell whose pressure would fall below ``floor_ratio`` times the step's mean gas pressure is
-    held there (cavitation; energy is added, counted in the info's ``floored``)."""
-    d, dx, volume_cell = grid.dim, grid.dx, grid.dx ** grid.dim
-    stencils, solid_mass, solid_momentum, solid_volume, Jg = _solid_on_grid(solid, grid)
-    moving = solid_volume >= 0.5 * volume_cell
-    static = np.zeros(grid.shape, bool) if grid.solid is None else grid.solid
-    blocked = _blocked_faces(solid_volume, grid)
-    advected = euler.advect(state, dataclasses.replace(grid, solid=moving | static), dt,
-                            passable=[1.0 - b for b in blocked])
-
-    # the coupled pressure solve
+def _face_system(advected: np.ndarray, moving: np.ndarray, blocked: list, solid_mass: list, solid_momentum: list,
+                 grid: euler.Grid):
+    """Per axis the faces' velocities u* before the solve (interior faces: gas and solid mixed by
+    their lumped masses), the coefficients V / m_f of the pressure system (0 on faces without
+    mass or next to static solids) and the solid's share m^s_f / m_f of each interior face."""
+    d, volume_cell = grid.dim, grid.dx ** grid.dim
     rho = advected[0]
     gas_velocity = advected[1:-1] / rho
-    stiffness = np.where(moving, solid.ghost * Jg, state[0] * sound_speed(state[0], pressure(state, gamma), gamma) ** 2)
-    p_star = np.where(moving, solid.p0 - solid.ghost * (Jg - 1.0), pressure(advected, gamma))
     u_star, coefficients, shares = [], [], []
     for axis in range(d):
         faces = euler._faces(gas_velocity[axis], axis, grid, "velocity")  # boundaries and static solids
@@ -301,21 +290,23 @@ def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravit
         if grid.solid is not None:
             sides = euler._solid_sides(axis, grid)
             open_face &= ~(sides[0] | sides[1])
-        mixture = np.where(open_face, (m_gas * u_gas + q_solid) / np.where(open_face, m_face, 1.0), 0.0)
-        inner = [slice(None)] * d
-        inner[axis] = slice(1, grid.shape[axis])
-        faces[tuple(inner)] = mixture
+        safe = np.where(open_face, m_face, 1.0)
+        _interior(faces, axis)[:] = np.where(open_face, (m_gas * u_gas + q_solid) / safe, 0.0)
         u_star.append(faces)
-        coefficients.append(np.where(open_face, volume_cell / np.where(open_face, m_face, 1.0), 0.0))
-        shares.append(np.where(open_face, m_solid / np.where(open_face, m_face, 1.0), 0.0))
-    diagonal = (1.0 / (stiffness * dt ** 2)).ravel()
-    rhs = diagonal * p_star.ravel() - euler._divergence(u_star, grid).ravel() / dt
-    p, iterations, residual = euler.solve_pressure(coefficients, diagonal, rhs, p_star, grid, dt, rtol)
+        coefficients.append(np.where(open_face, volume_cell / safe, 0.0))
+        shares.append(np.where(open_face, m_solid / safe, 0.0))
+    return u_star, coefficients, shares
 
-    # corrections: the gas by face pressures less the solid's share, the solid on its face nodes
+
+def _corrections(advected: np.ndarray, p: np.ndarray, system, moving: np.ndarray, solid_mass: list,
+                 solid_momentum: list, grid: euler.Grid, dt: float):
+    """The gas after the pressure correction (face pressures less the solid's share of each
+    face's impulse; energy by the faces' work) and per axis the solid's face-node velocities
+    with its share added (module docstring, step 5)."""
+    u_star, coefficients, shares = system
+    d, dx, volume_cell = grid.dim, grid.dx, grid.dx ** grid.dim
     out = advected.copy()
-    energy_flux = []
-    solid_velocity = []
+    energy_flux, solid_velocity = [], []
     for axis in range(d):
         below, above = euler._pairs(p, axis, grid)
         impulse = -dt * (above - below) / dx  # the face's momentum change per unit cell volume
@@ -326,41 +317,61 @@ def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravit
         take_above = np.where(has_solid, share + (1.0 - share) * solid_above, 0.0)
         p_f = euler._faces(p, axis, grid, "pressure")
         out[1 + axis] -= dt * euler._difference(p_f, axis, grid)
-        returned = np.zeros(grid.shape)
-        lower = [slice(None)] * d
-        lower[axis] = slice(0, grid.shape[axis] - 1)
-        upper = [slice(None)] * d
-        upper[axis] = slice(1, grid.shape[axis])
-        returned[tuple(lower)] -= 0.5 * impulse * take_below
-        returned[tuple(upper)] -= 0.5 * impulse * take_above
-        out[1 + axis] += returned
+        lower, upper = [slice(None)] * d, [slice(None)] * d
+        lower[axis], upper[axis] = slice(0, grid.shape[axis] - 1), slice(1, grid.shape[axis])
+        out[1 + axis][tuple(lower)] -= 0.5 * impulse * take_below  # the solid's part, taken from the gas
+        out[1 + axis][tuple(upper)] -= 0.5 * impulse * take_above
         to_solid = 0.5 * impulse * (take_below + take_above) * volume_cell
         mass = solid_mass[axis]
         velocity = np.divide(solid_momentum[axis], mass, out=np.zeros_like(mass), where=mass > 0)
         inner = _interior(_crop(velocity), axis)  # a view
         inner += np.divide(to_solid, _interior(_crop(mass), axis), out=np.zeros_like(to_solid), where=has_solid)
         solid_velocity.append(velocity)
-        index = [slice(None)] * d
-        index[axis] = slice(1, grid.shape[axis])
         u_f = u_star[axis].copy()
-        u_f[tuple(index)] += coefficients[axis] * impulse
-        flux = p_f * u_f
-        energy_flux.append(flux)
-    energy = -dt * euler._divergence(energy_flux, grid)
-    out[-1] += energy
-    keep = moving | static  # the gas inside solids stays as advected (its impulse went to the solid)
-    out[:, keep] = advected[:, keep]
-    # where a solid pulls away faster than gas can follow (a body lifting off a wall), the continuous
-    # pressure would go below zero: the gas cavitates; floor its pressure at a fraction of the
-    # step's mean gas pressure and count the cells (CoupledInfo.floored)
-    gas_cells = ~keep
+        _interior(u_f, axis)[:] += coefficients[axis] * impulse
+        energy_flux.append(p_f * u_f)
+    out[-1] -= dt * euler._divergence(energy_flux, grid)
+    return out, solid_velocity
+
+
+def _cavitation_floor(out: np.ndarray, state: np.ndarray, gas_cells: np.ndarray, gamma: float,
+                      floor_ratio: float) -> int:
+    """Where a solid pulls away faster than gas can follow (a body lifting off a wall), the
+    continuous pressure would go below zero: the gas cavitates. Floors the pressure of such gas
+    cells of ``out`` (in place) at ``floor_ratio`` times the step's mean gas pressure; returns how
+    many there were."""
     floor = floor_ratio * float(np.mean(pressure(state, gamma), where=gas_cells)) if gas_cells.any() else 0.0
     low = gas_cells & (pressure(out, gamma) < floor)
     if low.any():
         kinetic = 0.5 * (out[1:-1, low] ** 2).sum(axis=0) / out[0, low]
         out[-1, low] = kinetic + floor / (gamma - 1.0)
+    return int(low.sum())
+
+
+def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravity=None, gamma: float = GAMMA,
+         rtol: float = 1e-10, floor_ratio: float = 1e-3) -> tuple[np.ndarray, Solid, CoupledInfo]:
+    """One coupled step of dt (module docstring): the gas state (d + 2, *cells) and the solid
+    after it, and what the step did. ``grid.solid`` may hold static solid cells besides. A gas
+    cell whose pressure would fall below ``floor_ratio`` times the step's mean gas pressure is
+    held there (cavitation; energy is added, counted in the info's ``floored``)."""
+    stencils, solid_mass, solid_momentum, solid_volume, Jg = _solid_on_grid(solid, grid)
+    moving = solid_volume >= 0.5 * grid.dx ** grid.dim
+    static = np.zeros(grid.shape, bool) if grid.solid is None else grid.solid
+    blocked = _blocked_faces(solid_volume, grid)
+    advected = euler.advect(state, dataclasses.replace(grid, solid=moving | static), dt,
+                            passable=[1.0 - b for b in blocked])
+    stiffness = np.where(moving, solid.ghost * Jg, state[0] * sound_speed(state[0], pressure(state, gamma), gamma) ** 2)
+    p_star = np.where(moving, solid.p0 - solid.ghost * (Jg - 1.0), pressure(advected, gamma))
+    system = _face_system(advected, moving, blocked, solid_mass, solid_momentum, grid)
+    diagonal = (1.0 / (stiffness * dt ** 2)).ravel()
+    rhs = diagonal * p_star.ravel() - euler._divergence(system[0], grid).ravel() / dt
+    p, iterations, residual = euler.solve_pressure(system[1], diagonal, rhs, p_star, grid, dt, rtol)
+    out, solid_velocity = _corrections(advected, p, system, moving, solid_mass, solid_momentum, grid, dt)
+    keep = moving | static  # the gas inside solids stays as advected (its impulse went to the solid)
+    out[:, keep] = advected[:, keep]
+    floored = _cavitation_floor(out, state, ~keep, gamma, floor_ratio)
     new_solid = _mpm_update(solid, grid, stencils, solid_mass, solid_velocity, dt, gravity)
-    return out, new_solid, CoupledInfo(dt, iterations, residual, p, moving, int(low.sum()))
+    return out, new_solid, CoupledInfo(dt, iterations, residual, p, moving, floored)
 
 
 def _mpm_update(solid: Solid, grid: euler.Grid, stencils, masses, velocities, dt: float, gravity) -> Solid:
