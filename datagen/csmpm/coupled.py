@@ -47,6 +47,7 @@ the elastic forces.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 from dataclasses import dataclass
 
@@ -150,9 +151,14 @@ class _Stencil:
     f: np.ndarray
     shape: tuple[int, ...]
 
-    def nodes(self):
+    @functools.cached_property
+    def nodes(self) -> list[tuple]:
         """Per node of the 3^d stencil: (flat index or -1 outside the grid, weight (P,), weight
-        gradient (P, d), offset x_i - x_p over dx (P, d))."""
+        gradient (P, d), offset x_i - x_p over dx (P, d)); made once, read by every transfer of the
+        step (P2G of mass and momentum, the elastic forces, G2P)."""
+        return list(self._nodes())
+
+    def _nodes(self):
         d = self.base.shape[1]
         rows = np.arange(self.base.shape[0])
         for offset in itertools.product(range(3), repeat=d):
@@ -180,7 +186,7 @@ def _scatter(stencil: _Stencil, values) -> np.ndarray:
     """sum_p w_ip values_p on the nodes; ``values`` (P,) or a callable (weight, gradient, offset) -> (P,)."""
     size = int(np.prod(stencil.shape))
     out = np.zeros(size)
-    for flat, weight, gradient, offset in stencil.nodes():
+    for flat, weight, gradient, offset in stencil.nodes:
         contribution = values(weight, gradient, offset) if callable(values) else weight * values
         keep = flat >= 0
         out += np.bincount(flat[keep], contribution[keep], minlength=size)
@@ -397,7 +403,7 @@ def _mpm_update(solid: Solid, grid: euler.Grid, stencils, masses, velocities, dt
             inner[:] = np.where(below & ~above, np.maximum(inner, 0.0), np.where(above & ~below, np.minimum(inner, 0.0),
                                                                                   inner))
         flat_velocity = velocity.ravel()
-        for flat, weight, _, offset in stencil.nodes():
+        for flat, weight, _, offset in stencil.nodes:
             value = np.where(flat >= 0, flat_velocity[np.maximum(flat, 0)], 0.0) * weight
             new.v[:, axis] += value
             new.C[:, axis, :] += (4.0 / grid.dx) * value[:, None] * offset
