@@ -43,6 +43,7 @@ from ..mpm.materials import MATERIALS
 from ..trajectory import NodeType, Trajectory
 from . import coupled, euler, gas
 from .frames import frames
+from .gas import shock_state
 
 __all__ = ["COUPLED_DEFAULTS", "COUPLED_OUTPUT", "check", "simulate", "shock_state"]
 
@@ -60,15 +61,6 @@ COUPLED_OUTPUT = {"lifting_cylinder": {"frames": 10, "frame_interval": 0.03},
                   "shell_explosion": {"frames": 10, "frame_interval": 0.02},
                   "bullet": {"frames": 10, "frame_interval": 0.06}}
 ELASTIC = ("neo_hookean", "linear", "fixed_corotated")
-
-
-def shock_state(mach: float, rho: float, p: float, gamma: float = gas.GAMMA) -> tuple[float, float, float]:
-    """[rho, u, p] behind a shock of Mach ``mach`` moving into still gas (rho, p): the
-    Rankine–Hugoniot jump conditions."""
-    c = math.sqrt(gamma * p / rho)
-    m2 = mach * mach
-    return (rho * (gamma + 1.0) * m2 / ((gamma - 1.0) * m2 + 2.0), 2.0 * c * (m2 - 1.0) / ((gamma + 1.0) * mach),
-            p * (1.0 + 2.0 * gamma / (gamma + 1.0) * (m2 - 1.0)))
 
 
 def _pair(value, key: str) -> list[float]:
@@ -143,19 +135,13 @@ def _cells(nx: int, ny: int, dx: float):
 def _lifting_cylinder(p: dict, dx: float):
     (length, height) = p["size"]
     nx, ny = round(length / dx), round(height / dx)
-    rho1, p1 = p["ahead"]
-    behind = shock_state(p["mach"], rho1, p1, p["gamma"])
-    inflow = gas.conserved(np.array(behind[0]), np.array([behind[1], 0.0]), np.array(behind[2]), p["gamma"])
+    x, _ = _cells(nx, ny, dx)
+    inflow, state = gas.shock_start(x, p["shock_at"], p["mach"], p["ahead"], p["gamma"])
     grid = euler.Grid((nx, ny), dx, (("inlet", "open"), ("wall", "wall")), inflow=inflow)
-    x, y = _cells(nx, ny, dx)
-    shocked = x < p["shock_at"]
-    state = gas.conserved(np.where(shocked, behind[0], rho1), np.stack([np.where(shocked, behind[1], 0.0),
-                                                                        np.zeros_like(x)]),
-                          np.where(shocked, behind[2], p1), p["gamma"])
     # a cylinder resting on the floor is meshed a hair above it, so no particle sits on the wall's nodes
     cx, cy = p["centre"]
     mesh = shapes.disk(p["radius"], p["mesh_size"], center=(cx, max(cy, p["radius"] + 1e-3 * dx)))
-    return grid, state, mesh, p1
+    return grid, state, mesh, p["ahead"][1]
 
 
 def _shell_explosion(p: dict, dx: float):

@@ -83,16 +83,8 @@ def _setup(p: dict, grid_mesh):
     if not solid.any():
         raise ConfigError(f"config key 'params.obstacle' covers no cell centre at {n} cells per unit length; "
                           "make it larger or raise params.cells")
-    from .coupled_scenes import shock_state
-
-    rho1, p1 = p["ahead"]
-    behind = shock_state(p["mach"], rho1, p1, p["gamma"])
-    inflow = gas.conserved(np.array(behind[0]), np.array([behind[1], 0.0]), np.array(behind[2]), p["gamma"])
+    inflow, state = gas.shock_start(x, p["shock_at"], p["mach"], p["ahead"], p["gamma"])
     grid = euler.Grid((nx, ny), dx, (("inlet", "open"), ("wall", "wall")), inflow=inflow, solid=solid)
-    shocked = x < p["shock_at"]
-    state = gas.conserved(np.where(shocked, behind[0], rho1), np.stack([np.where(shocked, behind[1], 0.0),
-                                                                        np.zeros_like(x)]),
-                          np.where(shocked, behind[2], p1), p["gamma"])
     mesh, kept = grid_mesh(x, y, ~solid)
     codes = np.full((nx, ny), DEEPMIND_TYPES["normal"])
     near = np.zeros((nx, ny), bool)

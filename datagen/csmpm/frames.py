@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 from ..config import ConfigError
+from . import euler, gas
 
 __all__ = ["frames", "gas_frames"]
 
@@ -31,8 +32,6 @@ def gas_frames(scene: str, grid, state, gamma: float, solver: dict, output: dict
     """A gas scene's run (:mod:`datagen.csmpm.euler` on ``grid`` from ``state``): (states per frame,
     their times, wall seconds per frame, the most CG iterations per frame, total steps); frame 0
     is the start. RuntimeError naming ``scene`` if the gas leaves the physical states."""
-    from . import euler, gas
-
     states, times, wall, iterations, substeps = [state], [0.0], [0.0], [0], 0
     run = {"state": state}
 

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["GAMMA", "conserved", "primitive", "pressure", "sound_speed", "physical", "RiemannSolution", "exact_riemann"]
+__all__ = ["GAMMA", "conserved", "primitive", "pressure", "sound_speed", "physical", "shock_state", "shock_start",
+           "RiemannSolution", "exact_riemann"]
 
 GAMMA = 1.4
 
@@ -47,6 +48,27 @@ def sound_speed(density, pressure, gamma: float = GAMMA) -> np.ndarray:
 def physical(state: np.ndarray, gamma: float = GAMMA) -> bool:
     """Whether a conserved state (d + 2, ...) is finite with positive density and pressure."""
     return bool(np.all(np.isfinite(state)) and np.all(state[0] > 0) and np.all(pressure(state, gamma) > 0))
+
+
+def shock_state(mach: float, rho: float, p: float, gamma: float = GAMMA) -> tuple[float, float, float]:
+    """[rho, u, p] behind a shock of Mach ``mach`` moving into still gas (rho, p): the
+    Rankine–Hugoniot jump conditions."""
+    c = math.sqrt(gamma * p / rho)
+    m2 = mach * mach
+    return (rho * (gamma + 1.0) * m2 / ((gamma - 1.0) * m2 + 2.0), 2.0 * c * (m2 - 1.0) / ((gamma + 1.0) * mach),
+            p * (1.0 + 2.0 * gamma / (gamma + 1.0) * (m2 - 1.0)))
+
+
+def shock_start(x: np.ndarray, at: float, mach: float, ahead, gamma: float = GAMMA) -> tuple[np.ndarray, np.ndarray]:
+    """A 2D channel's start with a shock of Mach ``mach`` at x = ``at`` moving towards +x into still
+    gas ``ahead`` = (rho, p), cell centres' x coordinates ``x`` (nx, ny): (the conserved state
+    behind it (4,), which an inlet keeps feeding; the conserved state (4, nx, ny))."""
+    rho1, p1 = ahead
+    rho2, u2, p2 = shock_state(mach, rho1, p1, gamma)
+    behind = x < at
+    state = conserved(np.where(behind, rho2, rho1), np.stack([np.where(behind, u2, 0.0), np.zeros_like(x)]),
+                      np.where(behind, p2, p1), gamma)
+    return conserved(np.array(rho2), np.array([u2, 0.0]), np.array(p2), gamma), state
 
 
 @dataclass(frozen=True)
