@@ -27,11 +27,12 @@ import numpy as np
 from matplotlib.path import Path as Outline
 
 from ..config import ConfigError
+from ..mesh import Mesh
 from ..trajectory import NodeType, Trajectory
 from . import euler, gas
 from .frames import gas_frames
 
-__all__ = ["FLOW_DEFAULTS", "FLOW_OUTPUT", "check", "simulate", "DEEPMIND_TYPES"]
+__all__ = ["FLOW_DEFAULTS", "FLOW_OUTPUT", "check", "simulate", "cell_mesh", "DEEPMIND_TYPES"]
 
 FLOW_DEFAULTS = {"shock_channel": {"size": [2.0, 1.0], "cells": 32, "mach": 2.0, "ahead": [1.4, 1.0],
                                    "shock_at": 0.1, "obstacle": [[0.45, 0.4], [0.65, 0.35], [0.75, 0.55], [0.55, 0.68]],
@@ -74,7 +75,21 @@ def check(name: str, p: dict, number, state) -> dict:
     return p
 
 
-def _setup(p: dict, grid_mesh):
+def cell_mesh(x: np.ndarray, y: np.ndarray, keep: np.ndarray) -> tuple[Mesh, np.ndarray]:
+    """The triangulated centres of the ``keep`` cells of a 2D grid: two triangles per square of
+    four kept cells; (mesh, the kept cells' flat indices)."""
+    kept = np.flatnonzero(keep.ravel())
+    number = np.full(keep.size, -1)
+    number[kept] = np.arange(len(kept))
+    ids = number.reshape(keep.shape)
+    a, b, c, d = ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(), ids[:-1, 1:].ravel()
+    full = (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)
+    a, b, c, d = a[full], b[full], c[full], d[full]
+    cells = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    return Mesh(np.stack([x.ravel()[kept], y.ravel()[kept]], 1), cells), kept
+
+
+def _setup(p: dict):
     (length, height), n = p["size"], p["cells"]
     dx = 1.0 / n
     nx, ny = round(length * n), round(height * n)
@@ -85,7 +100,7 @@ def _setup(p: dict, grid_mesh):
                           "make it larger or raise params.cells")
     inflow, state = gas.shock_start(x, p["shock_at"], p["mach"], p["ahead"], p["gamma"])
     grid = euler.Grid((nx, ny), dx, (("inlet", "open"), ("wall", "wall")), inflow=inflow, solid=solid)
-    mesh, kept = grid_mesh(x, y, ~solid)
+    mesh, kept = cell_mesh(x, y, ~solid)
     codes = np.full((nx, ny), DEEPMIND_TYPES["normal"])
     near = np.zeros((nx, ny), bool)
     near[:, [0, -1]] = True
@@ -97,10 +112,10 @@ def _setup(p: dict, grid_mesh):
     return grid, state, mesh, kept, codes.ravel()[kept]
 
 
-def simulate(config: dict, grid_mesh) -> Trajectory:
-    """Run a resolved ``shock_channel`` config (``grid_mesh``: the gas scenes' cell triangulation)."""
+def simulate(config: dict) -> Trajectory:
+    """Run a resolved ``shock_channel`` config."""
     p, s, o = config["params"], config["solver"], config["output"]
-    grid, state, mesh, kept, codes = _setup(p, grid_mesh)
+    grid, state, mesh, kept, codes = _setup(p)
     states, times, wall, iterations, substeps = gas_frames("shock_channel", grid, state, p["gamma"], s, o)
     stacked = np.stack(states).reshape(len(states), 4, -1)[:, :, kept]
     rho = stacked[:, 0]

@@ -38,7 +38,7 @@ from ..trajectory import NodeType, Trajectory
 from . import euler, gas
 from .coupled_scenes import COUPLED_DEFAULTS, COUPLED_OUTPUT, check
 from .coupled_scenes import simulate as simulate_coupled
-from .flow import FLOW_DEFAULTS, FLOW_OUTPUT
+from .flow import FLOW_DEFAULTS, FLOW_OUTPUT, cell_mesh
 from .flow import check as check_flow
 from .flow import simulate as simulate_flow
 from .frames import gas_frames
@@ -167,22 +167,8 @@ def _initial(name: str, p: dict):
     x, y = np.meshgrid(centres, centres, indexing="ij")
     inside = (x - length / 2) ** 2 + (y - length / 2) ** 2 < p["radius"] ** 2
     rho, pres = (np.where(inside, a, b) for a, b in zip(p["inside"], p["outside"], strict=True))
-    mesh, _ = _grid_mesh(x, y, np.ones((n, n), bool))
+    mesh, _ = cell_mesh(x, y, np.ones((n, n), bool))
     return grid, gas.conserved(rho, np.zeros((2, n, n)), pres, p["gamma"]), mesh, None
-
-
-def _grid_mesh(x: np.ndarray, y: np.ndarray, keep: np.ndarray) -> tuple[Mesh, np.ndarray]:
-    """The triangulated centres of the ``keep`` cells of a 2D grid: two triangles per square of
-    four kept cells; (mesh, the kept cells' flat indices)."""
-    kept = np.flatnonzero(keep.ravel())
-    number = np.full(keep.size, -1)
-    number[kept] = np.arange(len(kept))
-    ids = number.reshape(keep.shape)
-    a, b, c, d = ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(), ids[:-1, 1:].ravel()
-    full = (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)
-    a, b, c, d = a[full], b[full], c[full], d[full]
-    cells = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
-    return Mesh(np.stack([x.ravel()[kept], y.ravel()[kept]], 1), cells), kept
 
 
 def _stair(p: dict):
@@ -195,7 +181,7 @@ def _stair(p: dict):
     inflow = gas.conserved(np.array(rho), np.array([u, 0.0]), np.array(pres), p["gamma"])
     grid = euler.Grid((nx, ny), dx, (("inlet", "open"), ("wall", "wall")), inflow=inflow, solid=solid)
     state = np.broadcast_to(inflow[:, None, None], (4, nx, ny)).copy()
-    mesh, kept = _grid_mesh(x, y, ~solid)
+    mesh, kept = cell_mesh(x, y, ~solid)
     return grid, state, mesh, kept
 
 
@@ -205,7 +191,7 @@ def simulate(config: dict) -> Trajectory:
     if config["scene"] in COUPLED_DEFAULTS:
         return simulate_coupled(config)
     if config["scene"] in FLOW_DEFAULTS:
-        return simulate_flow(config, _grid_mesh)
+        return simulate_flow(config)
     p, s, o = config["params"], config["solver"], config["output"]
     grid, state, mesh, kept = _initial(config["scene"], p)
     x = mesh.nodes
