@@ -14,7 +14,7 @@
    C0 linear kernel (FLIP failure step; MUSL stress noise vs UMLS), MLS without eta (jumps
    across faces), eulerian numerical fracture vs total/adaptive (torn-edge fraction).
 4. Learned rollouts from the comparison runs (runs/cmp_*) where they exist, and the seeding
-   sensitivity of a trained BSMS-GNN (thesis Table 4.8; runs/cmp_bsms, else runs/quickstart).
+   sensitivity of a trained BSMS-GNN (thesis Table 4.8; runs/cmp_bsms, else runs/glyphs_quickstart).
 
 Writes docs/images/failures_*.png and docs/failures.md (the table, also printed). The last
 line printed is ``failures: junction error GRID/BSMS R1, U-channel GRID/BSMS R2, uncovered
@@ -179,7 +179,7 @@ def learned_study(quick: bool, recipes: str = "s4k_") -> dict:
     named ``recipes``*, benchmarks/press_studies.py), and the seeding sensitivity of a trained BSMS-GNN."""
     rows = solvers.comparison_rows()
     recipe_rows = solvers.comparison_rows(prefix=recipes) if recipes else {}
-    run = next((Path("runs") / name for name in ("cmp_bsms", "quickstart")
+    run = next((Path("runs") / name for name in ("cmp_bsms", "glyphs_quickstart")
                 if (Path("runs") / name / "checkpoints").is_dir()), None)
     seeding = None
     if run is not None:

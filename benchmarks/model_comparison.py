@@ -20,7 +20,7 @@ process with the same threads, and this script writes ``<runs>/<prefix>_comparis
 
 Ends with exactly ``model comparison: RMSE all BSMS a, MGN b, GRID c, GUNETS d`` (m).
 
-    python benchmarks/model_comparison.py [--config configs/quickstart.yaml] [--steps 1500]
+    python benchmarks/model_comparison.py [--config configs/glyphs_quickstart.yaml] [--steps 1500]
 """
 
 from __future__ import annotations
@@ -110,7 +110,7 @@ def table(runs: Path, names: dict[str, str], metrics: dict) -> list[str]:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", default="configs/quickstart.yaml", help="training config (the family)")
+    parser.add_argument("--config", default="configs/glyphs_quickstart.yaml", help="training config (the family)")
     parser.add_argument("--steps", type=int, default=1500, help="training steps of every variant (default 1500)")
     parser.add_argument("--models", nargs="+", default=[label for label, _, _ in VARIANTS],
                         help="labels of the variants (default all)")
