@@ -98,6 +98,19 @@ def test_press_kinds_shares_press_deeps_test_split_and_trains_on_three_kinds():
     assert 28 <= letters <= 52 and all(p["char"] in "ABCDEFHKLMNPRTVWXYZ" for p in bodies if p.get("polygon") is None)
 
 
+def test_press_quickstart_draws_polygons_and_strokes_afresh_in_every_split():
+    """The quickstart's bodies are random polygons and strokes in every split (no letters), softer
+    and pressed deeper than press_kinds', and no test shape is a training one."""
+    dconfig = load_dataset_config(CONFIGS / "press_quickstart.yaml")
+    shapes = {split: [trajectory_config(dconfig, split, k)["params"] for k in range(dconfig["splits"][split])]
+              for split in ("train", "test")}
+    for split, bodies in shapes.items():
+        assert all(p.get("polygon") is not None for p in bodies), split
+        assert all(1e6 <= p["E"] <= 5e6 and 0.05 <= p["speed"] <= 0.08 for p in bodies), split
+    train = {str(p["polygon"]) for p in shapes["train"]}
+    assert not any(str(p["polygon"]) in train for p in shapes["test"])
+
+
 def test_disks_start_apart_and_inside_the_box():
     dconfig = load_dataset_config(CONFIGS / "disks.yaml")
     for index in range(50):
