@@ -31,6 +31,12 @@ length): schlieren of the gas, solid cells blue, the body's nodes orange over th
 elastic disk, 64^2 cells, 300 steps): gas mass drift, the largest per-step difference between
 the momentum change of gas and solid together and the walls' pressure impulse, and the drift of
 the total energy (gas, the solid's kinetic and elastic).
+
+``--outlets`` also measures the outlets (``euler.Grid.outlet``) on a 1D tube of 200 cells over
+[0, 1], walled on the left, its right end an outlet to a far field at rest at p = rho = 1
+(acoustic CFL 0.5): the amplitude of the wave reflected by a right-going acoustic pulse (1e-3 of
+the pressure) over the pulse's, once it has left (t = 0.9 / c), and the mean pressure 3 s after
+the tube started at rest at p = 1.1.
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 import datagen  # noqa: E402
-from datagen.csmpm import gas  # noqa: E402
+from datagen.csmpm import euler, gas  # noqa: E402
 
 TUBES = {  # name: (left, right, end time) on [0, 1], interface 0.5
     "sod": ([1.0, 0.0, 1.0], [0.125, 0.0, 0.1], 0.2),
@@ -229,6 +235,34 @@ def performance(resolutions: list[int], steps: int) -> None:
         print(f"{f'{n}^2':>10}{n * n / seconds:>14.3g}{seconds:>9.3f}{np.mean(iterations):>9.1f}{max(iterations):>8}")
 
 
+def _outlet_run(state: np.ndarray, outlet: str, attenuation: float, seconds: float) -> np.ndarray:
+    n = state.shape[1]
+    grid = euler.Grid((n,), 1.0 / n, (("wall", "open"),), outlet=outlet, attenuation=attenuation,
+                      outflow=gas.conserved(np.array(1.0), np.array([0.0]), np.array(1.0)))
+    t = 0.0
+    while t < seconds - 1e-12:
+        dt = min(euler.time_step(state, grid, 0.5, 1.0), seconds - t)
+        state, _ = euler.step(state, grid, dt)
+        t += dt
+    return state
+
+
+def outlets(n: int = 200) -> None:
+    """The outlets' reflection of a leaving pressure pulse and relaxation of an overpressure."""
+    x, c = (np.arange(n) + 0.5) / n, np.sqrt(gas.GAMMA)
+    dp = 1e-3 * np.exp(-(((x - 0.5) / 0.05) ** 2))
+    pulse = gas.conserved(1.0 + dp / c**2, (dp / c)[None], 1.0 + dp)
+    over = gas.conserved(np.full(n, 1.1 ** (1 / gas.GAMMA)), np.zeros((1, n)), np.full(n, 1.1))
+    print(f"{'outlet':<22}{'reflected':>11}{'mean p at 3 s':>15}")
+    for outlet, a in (("extrapolate", 1.0), ("attenuate", 0.9), ("attenuate", 0.5), ("attenuate", 0.0),
+                      ("characteristic", 1.0)):
+        state = _outlet_run(pulse.copy(), outlet, a, 0.9 / c)
+        reflected = np.abs(gas.pressure(state) - 1.0 - c * state[1] / state[0]).max() / 2 / 1e-3
+        relaxed = gas.pressure(_outlet_run(over.copy(), outlet, a, 3.0)).mean()
+        label = outlet if outlet != "attenuate" else f"attenuate (a = {a:g})"
+        print(f"{label:<22}{reflected:>11.4f}{relaxed:>15.5f}")
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cells", type=int, nargs="+", default=[128, 256, 512, 1024, 2048])
@@ -240,7 +274,10 @@ def main(argv=None) -> None:
     parser.add_argument("--coupling", action="store_true", help="run the coupled solver's closed-box check")
     parser.add_argument("--performance", type=int, nargs="*", default=[], help="circular shock resolutions to time")
     parser.add_argument("--steps", type=int, default=5, help="steps timed per --performance resolution")
+    parser.add_argument("--outlets", action="store_true", help="measure the outlets' reflection and relaxation")
     args = parser.parse_args(argv)
+    if args.outlets:
+        outlets()
     if args.performance:
         performance(args.performance, args.steps)
     cg_max, summary = 0, {}

@@ -45,10 +45,14 @@ def test_the_blocked_fraction_is_the_ball_of_the_solid_volume():
     np.testing.assert_array_equal(coupled.blocked_fraction(np.array([0.0, 0.03, 0.2]), dx, 1), [0.0, 0.3, 1.0])
 
 
-def test_without_a_solid_the_coupled_step_is_the_gas_step():
+@pytest.mark.parametrize("outlet", euler.OUTLETS)
+def test_without_a_solid_the_coupled_step_is_the_gas_step(outlet):
+    """Also with outlets coupled to the far field (the top and right ends), on a random state
+    whose outflow is partly subsonic, partly supersonic."""
     n = 24
-    grid = euler.Grid((n, n), 1.0 / n, (("inlet", "open"), ("wall", "wall")),
-                      inflow=gas.conserved(np.array(1.4), np.array([3.0, 0.0]), np.array(1.0)))
+    inflow = gas.conserved(np.array(1.4), np.array([3.0, 0.0]), np.array(1.0))
+    grid = euler.Grid((n, n), 1.0 / n, (("inlet", "open"), ("wall", "open")), inflow=inflow, outlet=outlet,
+                      attenuation=0.5, outflow=gas.conserved(np.array(1.0), np.array([0.5, 0.0]), np.array(1.0)))
     rng = np.random.default_rng(0)
     state = gas.conserved(rng.uniform(0.5, 2, (n, n)), rng.normal(0, 1, (2, n, n)), rng.uniform(0.5, 2, (n, n)))
     material = NeoHookean(E=1e3, nu=0.3, density=2.0)

@@ -305,7 +305,7 @@ def _face_system(advected: np.ndarray, moving: np.ndarray, blocked: list, solid_
 
 
 def _corrections(advected: np.ndarray, p: np.ndarray, system, moving: np.ndarray, solid_mass: list,
-                 solid_momentum: list, grid: euler.Grid, dt: float):
+                 solid_momentum: list, grid: euler.Grid, dt: float, ends: list):
     """The gas after the pressure correction (face pressures less the solid's share of each
     face's impulse; energy by the faces' work) and per axis the solid's face-node velocities
     with its share added (module docstring, step 5)."""
@@ -321,7 +321,9 @@ def _corrections(advected: np.ndarray, p: np.ndarray, system, moving: np.ndarray
         share = shares[axis]
         take_below = np.where(has_solid, share + (1.0 - share) * solid_below, 0.0)
         take_above = np.where(has_solid, share + (1.0 - share) * solid_above, 0.0)
+        u_f = u_star[axis].copy()
         p_f = euler._faces(p, axis, grid, "pressure")
+        euler.correct_outlets(u_f, p_f, p, ends, axis)  # outlets coupled to the far field
         out[1 + axis] -= dt * euler._difference(p_f, axis, grid)
         lower, upper = [slice(None)] * d, [slice(None)] * d
         lower[axis], upper[axis] = slice(0, grid.shape[axis] - 1), slice(1, grid.shape[axis])
@@ -333,7 +335,6 @@ def _corrections(advected: np.ndarray, p: np.ndarray, system, moving: np.ndarray
         inner = _interior(_crop(velocity), axis)  # a view
         inner += np.divide(to_solid, _interior(_crop(mass), axis), out=np.zeros_like(to_solid), where=has_solid)
         solid_velocity.append(velocity)
-        u_f = u_star[axis].copy()
         _interior(u_f, axis)[:] += coefficients[axis] * impulse
         energy_flux.append(p_f * u_f)
     out[-1] -= dt * euler._divergence(energy_flux, grid)
@@ -371,8 +372,11 @@ def step(state: np.ndarray, solid: Solid, grid: euler.Grid, dt: float, *, gravit
     system = _face_system(advected, moving, blocked, solid_mass, solid_momentum, grid)
     diagonal = (1.0 / (stiffness * dt ** 2)).ravel()
     rhs = diagonal * p_star.ravel() - euler._divergence(system[0], grid).ravel() / dt
-    p, iterations, residual = euler.solve_pressure(system[1], diagonal, rhs, p_star, grid, dt, rtol)
-    out, solid_velocity = _corrections(advected, p, system, moving, solid_mass, solid_momentum, grid, dt)
+    ends = euler.outlet_ends(advected, system[0], grid, dt, gamma)
+    outlet_diagonal, outlet_rhs = euler.outlet_terms(ends, grid)
+    p, iterations, residual = euler.solve_pressure(system[1], diagonal + outlet_diagonal, rhs + outlet_rhs, p_star,
+                                                   grid, dt, rtol)
+    out, solid_velocity = _corrections(advected, p, system, moving, solid_mass, solid_momentum, grid, dt, ends)
     keep = moving | static  # the gas inside solids stays as advected (its impulse went to the solid)
     out[:, keep] = advected[:, keep]
     floored = _cavitation_floor(out, state, ~keep, gamma, floor_ratio)

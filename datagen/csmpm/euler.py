@@ -20,8 +20,22 @@ to round-off (walls: no flux; their faces carry only the wall's pressure force o
 Boundaries per axis end: ``wall`` (reflective: ghost cells mirror the state with the normal
 velocity negated; face velocity 0, zero pressure gradient), ``open`` (an outlet: ghost cells
 extrapolate the edge cell; the face velocity is the edge cell's, the face pressure its
-pressure) or ``inlet`` (ghost cells hold the grid's ``inflow`` state; its velocity and pressure
+pressure; attenuated below) or ``inlet`` (ghost cells hold the grid's ``inflow`` state; its velocity and pressure
 act at the face: the thesis' §3.2.9 with a prescribed supersonic inflow).
+
+**Outlets** (§3.2.9; ``Grid.outlet``): ``extrapolate`` (the default above: zero pressure gradient,
+the face velocity the edge cell's, so the outlet does not know the far field and a pressure
+wave leaving through it partly reflects), ``attenuate`` (the thesis' attenuated ghost cells: with
+``Grid.attenuation`` a and the far field's conserved state ``Grid.outflow``, the ghost cells k = 1, 2
+away hold far + a^k (edge - far) and the face pressure is p_far + a (p_edge - p_far): the domain
+relaxes towards the far field, a = 0 holds the face at p_far) or ``characteristic`` (no wave
+enters from outside: the face pressure and outward velocity satisfy p_b - p_far = rho c (u_b -
+u_far), the acoustic impedance of the edge cell, so a leaving pressure wave passes; where the
+outflow is supersonic nothing enters and the face extrapolates). Both
+couple the face pressure p_b to the edge cell's through the half cell between them, as the
+Robin condition p_b = p_edge + f (target - p_edge), taken implicitly by the pressure solve:
+2 f / (rho_edge dx^2) joins the edge cell's diagonal (the system stays SPD) and the face
+velocity is corrected by that gradient. Measured in docs/csmpm.md.
 
 Static solid cells (``Grid.solid``, a boolean mask) are walls inside the domain: no advective
 flux crosses a face between gas and solid, a WENO stencil that reaches into a solid cell takes
@@ -41,9 +55,10 @@ from scipy.sparse.linalg import LinearOperator, cg
 from .gas import GAMMA, pressure, sound_speed
 
 __all__ = ["Grid", "BOUNDARIES", "advective_flux", "advect", "solve_pressure", "project", "step", "time_step",
-           "StepInfo"]
+           "StepInfo", "OUTLETS", "outlet_ends", "outlet_terms", "correct_outlets"]
 
 BOUNDARIES = ("wall", "open", "inlet")
+OUTLETS = ("extrapolate", "attenuate", "characteristic")
 EPSILON = 1e-6  # the WENO weights' guard against division by zero
 
 
@@ -51,13 +66,19 @@ EPSILON = 1e-6  # the WENO weights' guard against division by zero
 class Grid:
     """A regular grid of cells: ``shape`` cells per axis, square cells of side ``dx``, per axis
     the (low, high) boundaries, each ``wall``, ``open`` or ``inlet``; ``inflow``: the conserved
-    state (d + 2,) the inlets hold; ``solid``: a boolean mask of static solid cells (None: none)."""
+    state (d + 2,) the inlets hold; ``solid``: a boolean mask of static solid cells (None: none);
+    ``outlet``: how outlets treat the far field (:data:`OUTLETS`, module docstring), whose conserved
+    state (d + 2,) ``outflow`` holds (needed but for ``extrapolate``); ``attenuation`` a (0 to 1)
+    of the ``attenuate`` outlet."""
 
     shape: tuple[int, ...]
     dx: float
     boundaries: tuple[tuple[str, str], ...]
     inflow: np.ndarray | None = None
     solid: np.ndarray | None = None
+    outlet: str = "extrapolate"
+    attenuation: float = 1.0
+    outflow: np.ndarray | None = None
 
     def __post_init__(self):
         if len(self.boundaries) != len(self.shape) or any(len(b) != 2 for b in self.boundaries):
@@ -70,6 +91,14 @@ class Grid:
                 self.inflow is None or np.shape(self.inflow) != (len(self.shape) + 2,)):
             raise ValueError(f"an inlet needs the inflow's conserved state ({len(self.shape) + 2} values), "
                              f"got {self.inflow!r}")
+        if self.outlet not in OUTLETS:
+            raise ValueError(f"unknown outlet {self.outlet!r}; choose one of {', '.join(OUTLETS)}")
+        if not 0.0 <= self.attenuation <= 1.0:
+            raise ValueError(f"attenuation must be from 0 (the far field held at outlets) to 1 (plain extrapolation), "
+                             f"got {self.attenuation}")
+        if self.outlet != "extrapolate" and (self.outflow is None or np.shape(self.outflow) != (len(self.shape) + 2,)):
+            raise ValueError(f"a {self.outlet} outlet needs the far field's conserved state (outflow, "
+                             f"{len(self.shape) + 2} values), got {self.outflow!r}")
         if self.solid is not None and np.shape(self.solid) != tuple(self.shape):
             raise ValueError(f"solid must be a mask of the {self.shape} cells, got shape {np.shape(self.solid)}")
         if min(self.shape) < 2 or not self.dx > 0:
@@ -78,6 +107,11 @@ class Grid:
     @property
     def dim(self) -> int:
         return len(self.shape)
+
+    @property
+    def attenuated(self) -> bool:
+        """Whether the outlets' ghost cells are attenuated towards the far field."""
+        return self.outlet == "attenuate" and self.attenuation < 1.0
 
 
 @dataclass(frozen=True)
@@ -94,16 +128,22 @@ def _ghosts(state: np.ndarray, axis: int, grid: Grid) -> np.ndarray:
     """``state`` (k, *cells) padded by two ghost cells at both ends of ``axis``."""
     a, n = axis + 1, grid.shape[axis]
     parts = []
-    for side, pair, edge in zip(grid.boundaries[axis], ([0, 1], [n - 2, n - 1]), ([0, 0], [n - 1, n - 1]),
-                                strict=True):
+    # per end: the two cells next to it, the edge cell twice, and the ghosts' distances from the edge
+    for side, pair, edge, distance in zip(grid.boundaries[axis], ([0, 1], [n - 2, n - 1]), ([0, 0], [n - 1, n - 1]),
+                                          ([2, 1], [1, 2]), strict=True):
         if side == "wall":  # the two cells mirrored, their normal momentum negated
             ghost = np.flip(np.take(state, pair, axis=a), axis=a)
             ghost[1 + axis] *= -1.0
         elif side == "inlet":
             ghost = np.broadcast_to(np.reshape(grid.inflow, (-1,) + (1,) * (state.ndim - 1)),
                                     np.take(state, pair, axis=a).shape)
-        else:  # open: the edge cell extrapolated
+        else:  # open: the edge cell extrapolated, attenuated towards the far field
             ghost = np.take(state, edge, axis=a)
+            if grid.attenuated:
+                far = np.reshape(grid.outflow, (-1,) + (1,) * (state.ndim - 1))
+                shape = [1] * state.ndim
+                shape[a] = 2
+                ghost = far + np.reshape(grid.attenuation ** np.array(distance, float), shape) * (ghost - far)
         parts.append(ghost)
     return np.concatenate([parts[0], state, parts[1]], axis=a)
 
@@ -198,7 +238,8 @@ def _faces(cells: np.ndarray, axis: int, grid: Grid, kind: str) -> np.ndarray:
     """(n + 1 along ``axis``) face values of a cell field of the grid's shape: ``velocity`` (the
     normal velocity, cells' u_axis): the mean of the two cells, 0 at walls and solid faces, the
     edge cell's at outlets, the inflow's at inlets; ``pressure``: the mean of two gas cells,
-    the gas cell's own at a solid face, the edge cell's at walls and outlets, the inflow's at inlets."""
+    the gas cell's own at a solid face, the edge cell's at walls and outlets (other outlets than
+    ``extrapolate``: :func:`correct_outlets`), the inflow's at inlets."""
     below, above = _pairs(cells, axis, grid)
     inner = 0.5 * (below + above)
     sides = _solid_sides(axis, grid)
@@ -217,6 +258,80 @@ def _faces(cells: np.ndarray, axis: int, grid: Grid, kind: str) -> np.ndarray:
             end = np.full_like(end, inflow[1 + axis] / inflow[0] if kind == "velocity" else pressure(inflow))
         ends.append(end)
     return np.concatenate([ends[0], inner, ends[1]], axis=axis)
+
+
+@dataclass(frozen=True, eq=False)
+class OutletEnd:
+    """One outlet end of an axis whose face pressure p_b = p_edge + factor (target - p_edge) (module
+    docstring): the edge cell's index, the face's, the outward sign, and per face ``factor``,
+    ``target``, ``k`` = 2 dt / (rho_edge dx), how p_b - p_edge changes the outward velocity, and
+    ``weight`` = 2 factor / (rho_edge dx^2), its term in the edge cell's row of the system."""
+
+    axis: int
+    index: int
+    face: int
+    outward: float
+    factor: np.ndarray
+    target: np.ndarray
+    k: np.ndarray
+    weight: np.ndarray
+
+
+def outlet_ends(state: np.ndarray, u_faces: list[np.ndarray], grid: Grid, dt: float,
+                gamma: float = GAMMA) -> list[OutletEnd]:
+    """The outlets of ``grid`` that couple to the far field (``attenuate``, ``characteristic``), from
+    the advected ``state`` and the face velocities u* (per axis, n + 1 faces) before the solve."""
+    if grid.outlet == "extrapolate":
+        return []
+    far = np.asarray(grid.outflow, np.float64)
+    p_far, ends = pressure(far, gamma), []
+    for axis in range(grid.dim):
+        n = grid.shape[axis]
+        for index, face, outward, side in zip((0, n - 1), (0, n), (-1.0, 1.0), grid.boundaries[axis], strict=True):
+            if side != "open":
+                continue
+            edge = np.take(state, [index], axis=axis + 1)
+            k = 2.0 * dt / (edge[0] * grid.dx)
+            if grid.outlet == "attenuate":
+                factor, target = np.full_like(k, 1.0 - grid.attenuation), np.full_like(k, p_far)
+            else:  # characteristic: p_b - p_far = Z (u_b - u_far) outward, u_b = u* - k (p_b - p_edge)
+                c = sound_speed(edge[0], pressure(edge, gamma), gamma)
+                impedance = edge[0] * c
+                u_star = outward * np.take(u_faces[axis], [face], axis=axis)
+                # a supersonic outflow has no incoming characteristic: plain extrapolation there
+                factor = np.where(u_star >= c, 0.0, 1.0 / (1.0 + impedance * k))
+                target = p_far + impedance * (u_star - outward * far[1 + axis] / far[0])
+            weight = 2.0 * factor / (edge[0] * grid.dx ** 2)
+            ends.append(OutletEnd(axis, index, face, outward, factor, target, k, weight))
+    return ends
+
+
+def outlet_terms(ends: list[OutletEnd], grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """(diagonal, right-hand side) additions, flat over the cells, of the ``ends``
+    (:func:`outlet_ends`) to the pressure system: each end's weight on its edge cells, times its
+    target on the right."""
+    diagonal, rhs = np.zeros(grid.shape), np.zeros(grid.shape)
+    for end in ends:
+        where = [slice(None)] * grid.dim
+        where[end.axis] = slice(end.index, end.index + 1)
+        diagonal[tuple(where)] += end.weight
+        rhs[tuple(where)] += end.weight * end.target
+    return diagonal.ravel(), rhs.ravel()
+
+
+def correct_outlets(u_faces: np.ndarray, p_faces: np.ndarray, p: np.ndarray, ends: list[OutletEnd],
+                    axis: int) -> None:
+    """The ``ends`` of ``axis``: their face pressure p_b = p_edge + f (target - p_edge) into
+    ``p_faces`` and their face velocity corrected outward by -k (p_b - p_edge), in place."""
+    for end in ends:
+        if end.axis != axis:
+            continue
+        where = [slice(None)] * p.ndim
+        where[axis] = slice(end.face, end.face + 1)
+        edge = np.take(p, [end.index], axis=axis)
+        jump = end.factor * (end.target - edge)  # p_b - p_edge
+        p_faces[tuple(where)] = edge + jump
+        u_faces[tuple(where)] -= end.outward * end.k * jump
 
 
 def _face_coefficients(density: np.ndarray, grid: Grid) -> list[np.ndarray]:
@@ -285,7 +400,10 @@ def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gam
     u_faces = [_faces(velocity[axis], axis, grid, "velocity") for axis in range(grid.dim)]
     diagonal = (1.0 / (stiffness * dt ** 2)).ravel()
     rhs = diagonal * p_star.ravel() - _divergence(u_faces, grid).ravel() / dt
-    p, iterations, residual = solve_pressure(_face_coefficients(rho, grid), diagonal, rhs, p_star, grid, dt, rtol)
+    ends = outlet_ends(advected, u_faces, grid, dt, gamma)
+    outlet_diagonal, outlet_rhs = outlet_terms(ends, grid)
+    p, iterations, residual = solve_pressure(_face_coefficients(rho, grid), diagonal + outlet_diagonal,
+                                             rhs + outlet_rhs, p_star, grid, dt, rtol)
     out = advected.copy()
     energy_flux = []
     for axis, coefficient in enumerate(_face_coefficients(rho, grid)):
@@ -295,6 +413,7 @@ def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gam
         inner[axis] = slice(1, grid.shape[axis])
         u_f[tuple(inner)] -= dt * coefficient * (above - below) / grid.dx
         p_f = _faces(p, axis, grid, "pressure")
+        correct_outlets(u_f, p_f, p, ends, axis)
         out[1 + axis] -= dt * _difference(p_f, axis, grid)
         energy_flux.append(p_f * u_f)
     out[-1] -= dt * _divergence(energy_flux, grid)
