@@ -20,8 +20,8 @@ to round-off (walls: no flux; their faces carry only the wall's pressure force o
 Boundaries per axis end: ``wall`` (reflective: ghost cells mirror the state with the normal
 velocity negated; face velocity 0, zero pressure gradient), ``open`` (an outlet: ghost cells
 extrapolate the edge cell; the face velocity is the edge cell's, the face pressure its
-pressure; attenuated below) or ``inlet`` (ghost cells hold the grid's ``inflow`` state; its velocity and pressure
-act at the face: the thesis' §3.2.9 with a prescribed supersonic inflow).
+pressure; other outlets below) or ``inlet`` (ghost cells hold the grid's ``inflow`` state; its
+velocity and pressure act at the face: the thesis' §3.2.9 with a prescribed supersonic inflow).
 
 **Outlets** (§3.2.9; ``Grid.outlet``): ``extrapolate`` (the default above: zero pressure gradient,
 the face velocity the edge cell's, so the outlet does not know the far field and a pressure
@@ -31,9 +31,9 @@ away hold far + a^k (edge - far) and the face pressure is p_far + a (p_edge - p_
 relaxes towards the far field, a = 0 holds the face at p_far) or ``characteristic`` (no wave
 enters from outside: the face pressure and outward velocity satisfy p_b - p_far = rho c (u_b -
 u_far), the acoustic impedance of the edge cell, so a leaving pressure wave passes; where the
-outflow is supersonic nothing enters and the face extrapolates). Both
-couple the face pressure p_b to the edge cell's through the half cell between them, as the
-Robin condition p_b = p_edge + f (target - p_edge), taken implicitly by the pressure solve:
+outflow is supersonic nothing enters and the face extrapolates). Both couple the face pressure
+p_b to the edge cell's through the half cell between them, as the Robin condition
+p_b = p_edge + f (target - p_edge), taken implicitly by the pressure solve:
 2 f / (rho_edge dx^2) joins the edge cell's diagonal (the system stays SPD) and the face
 velocity is corrected by that gradient. Measured in docs/csmpm.md.
 
