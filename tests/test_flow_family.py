@@ -52,6 +52,8 @@ def test_shock_channel_writes_eulerian_fields_the_learned_side_reads():
         datagen.simulate({**SMALL, "params": {**SMALL["params"], "obstacle": [[0.05, 0.4], [0.3, 0.4], [0.2, 0.6]]}})
     with pytest.raises(ConfigError, match="must be > 1 \\(a shock\\)"):
         datagen.simulate({**SMALL, "params": {**SMALL["params"], "mach": 0.9}})
+    with pytest.raises(ConfigError, match="'params.outlet' must be extrapolate or characteristic, got 'open'"):
+        datagen.simulate({**SMALL, "params": {**SMALL["params"], "outlet": "open"}})
 
 
 def test_the_family_draws_obstacles_and_shocks_reproducibly():

@@ -9,7 +9,8 @@ it the gas holds the Rankine–Hugoniot state, which the inlet keeps feeding. Th
 reflection off the obstacle, its diffraction around it and the reflections off the walls are
 the motion. (An obstacle appearing in a uniform supersonic stream instead leaves a
 near-vacuum wake behind it, where the pressure goes negative.) The gas solver is CSMPM's
-(:mod:`datagen.csmpm.euler`; ``solver.cfl`` on |u| + ``solver.acoustic`` c).
+(:mod:`datagen.csmpm.euler`; ``solver.cfl`` on |u| + ``solver.acoustic`` c); ``outlet``
+``extrapolate`` (the default) or ``characteristic`` (the far field: the still gas ahead).
 
 The Trajectory is Eulerian data like DeepMind's compressible ``airfoil``: its mesh triangulates
 the gas cells' centres (fixed positions, velocities the gas velocity), its ``fields`` hold
@@ -36,7 +37,7 @@ __all__ = ["FLOW_DEFAULTS", "FLOW_OUTPUT", "check", "simulate", "cell_mesh", "DE
 
 FLOW_DEFAULTS = {"shock_channel": {"size": [2.0, 1.0], "cells": 32, "mach": 2.0, "ahead": [1.4, 1.0],
                                    "shock_at": 0.1, "obstacle": [[0.45, 0.4], [0.65, 0.35], [0.75, 0.55], [0.55, 0.68]],
-                                   "gamma": gas.GAMMA}}
+                                   "gamma": gas.GAMMA, "outlet": "extrapolate"}}
 FLOW_OUTPUT = {"shock_channel": {"frames": 40, "frame_interval": 0.02}}
 DEEPMIND_TYPES = {"normal": 0, "inflow": 4, "outflow": 5, "wall": 6}  # DeepMind's NodeType codes
 # what bsms.fields.infer_spec makes of these fields (tested equal): airfoil's spec
@@ -49,6 +50,8 @@ def check(name: str, p: dict, number, state) -> dict:
     """``shock_channel``'s params checked (``number``/``state``: the gas scenes' checks)."""
     p["cells"] = number(p["cells"], "params.cells", low=1, integer=True)
     p["gamma"] = float(number(p["gamma"], "params.gamma", low=1))
+    if p["outlet"] not in ("extrapolate", "characteristic"):
+        raise ConfigError(f"config key 'params.outlet' must be extrapolate or characteristic, got {p['outlet']!r}")
     p["mach"], p["shock_at"] = (float(number(p[k], f"params.{k}", low=0)) for k in ("mach", "shock_at"))
     if p["mach"] <= 1:
         raise ConfigError(f"config key 'params.mach' must be > 1 (a shock), got {p['mach']!r}")
@@ -99,7 +102,9 @@ def _setup(p: dict):
         raise ConfigError(f"config key 'params.obstacle' covers no cell centre at {n} cells per unit length; "
                           "make it larger or raise params.cells")
     inflow, state = gas.shock_start(x, p["shock_at"], p["mach"], p["ahead"], p["gamma"])
-    grid = euler.Grid((nx, ny), dx, (("inlet", "open"), ("wall", "wall")), inflow=inflow, solid=solid)
+    far = gas.conserved(np.array(p["ahead"][0]), np.zeros(2), np.array(p["ahead"][1]), p["gamma"])  # still gas
+    grid = euler.Grid((nx, ny), dx, (("inlet", "open"), ("wall", "wall")), inflow=inflow, solid=solid,
+                      outlet=p["outlet"], outflow=far)
     mesh, kept = cell_mesh(x, y, ~solid)
     codes = np.full((nx, ny), DEEPMIND_TYPES["normal"])
     near = np.zeros((nx, ny), bool)
