@@ -79,6 +79,32 @@ def test_a_body_at_rest_in_still_gas_stays_at_rest():
     assert info.solid_cells.sum() > 0
 
 
+def _struck_box(solid, n: int, steps: int):
+    """A closed box of n cells per side (the solid's dimension): gas at 4x the pressure and 2x the
+    density on the left quarter, at rest, striking ``solid`` for ``steps`` steps. -> (solid after,
+    gas mass before and after, the largest per-step difference between the momentum change of gas
+    and solid together and the walls' pressure impulse, the largest relative energy drift, CG
+    iterations per step, the solid's mean displacement)."""
+    d, dx = solid.x.shape[1], 1.0 / n
+    grid = euler.Grid((n,) * d, dx, (("wall", "wall"),) * d)
+    left = np.broadcast_to((((np.arange(n) + 0.5) * dx) < 0.25).reshape((n,) + (1,) * (d - 1)), (n,) * d)
+    state = gas.conserved(np.where(left, 2.0, 1.0), np.zeros((d,) + (n,) * d), np.where(left, 4.0, 1.0))
+    mass0, momentum, energy0 = _totals(state, solid, dx)
+    worst, drift, iterations, start = 0.0, 0.0, [], solid.x.mean(axis=0)
+    for _ in range(steps):
+        dt = coupled.time_step(state, solid, grid)
+        state, solid, info = coupled.step(state, solid, grid, dt)
+        p = info.pressure
+        wall = -dt * dx ** (d - 1) * np.array([np.take(p, -1, axis=a).sum() - np.take(p, 0, axis=a).sum()
+                                               for a in range(d)])
+        mass, now, energy = _totals(state, solid, dx)
+        worst = max(worst, float(np.abs(now - momentum - wall).max()))
+        drift = max(drift, abs(energy / energy0 - 1.0))
+        momentum = now
+        iterations.append(info.cg_iterations)
+    return solid, mass0, mass, worst, drift, iterations, solid.x.mean(axis=0) - start
+
+
 @pytest.mark.parametrize("material", [NeoHookean(E=200.0, nu=0.3, density=3.0),
                                       J2Softening(E=200.0, nu=0.3, density=3.0, kappa_peak=0.3, kappa_residual=0.1,
                                                   eta=1.0)], ids=["elastic", "plastic"])
@@ -87,30 +113,12 @@ def test_a_shock_pushes_a_body_conserving_mass_and_balancing_momentum(material):
     round-off; each step the momentum of gas and solid together changes by exactly the walls'
     pressure impulse; energy (gas, solid kinetic and elastic) drifts by little."""
     n = 32
-    dx = 1.0 / n
-    grid = _box(n)
-    solid = coupled.Solid.from_mesh(shapes.disk(0.12, 0.5 * dx, center=(0.55, 0.5)), material, p0=1.0)
-    x = (np.arange(n) + 0.5) * dx
-    left = (x < 0.25)[:, None] & np.ones(n, bool)
-    state = gas.conserved(np.where(left, 2.0, 1.0), np.zeros((2, n, n)), np.where(left, 4.0, 1.0))
-    mass0, momentum, energy0 = _totals(state, solid, dx)
-    worst, drift, iterations = 0.0, 0.0, []
-    start = solid.x.mean(axis=0)
-    for _ in range(150):
-        dt = coupled.time_step(state, solid, grid)
-        state, solid, info = coupled.step(state, solid, grid, dt)
-        p = info.pressure
-        wall = -dt * dx * np.array([p[-1].sum() - p[0].sum(), p[:, -1].sum() - p[:, 0].sum()])
-        mass, now, energy = _totals(state, solid, dx)
-        worst = max(worst, float(np.abs(now - momentum - wall).max()))
-        drift = max(drift, abs(energy / energy0 - 1.0))
-        momentum = now
-        iterations.append(info.cg_iterations)
+    solid = coupled.Solid.from_mesh(shapes.disk(0.12, 0.5 / n, center=(0.55, 0.5)), material, p0=1.0)
+    solid, mass0, mass, worst, drift, iterations, moved = _struck_box(solid, n, 150)
     assert mass == pytest.approx(mass0, rel=1e-15, abs=0.0)
     assert worst <= 1e-15
     assert drift <= 2e-3
     assert max(iterations) <= 12
-    moved = solid.x.mean(axis=0) - start
     assert moved[0] > 0.02 and abs(moved[1]) < 1e-2 * moved[0], "pushed to the right, not sideways"
     assert solid.momentum[0] > 0.3 * solid.mass.sum()
     if solid.plastic_strain is not None:
@@ -190,27 +198,9 @@ def test_the_coupling_runs_in_3d_conserving_mass_and_balancing_momentum():
     exact, gas and solid momentum together change by the walls' pressure impulse (4.5e-17 per
     step, measured), energy drifts 1.1e-6, the ball is pushed along x and not sideways."""
     n = 16
-    dx = 1.0 / n
-    grid = euler.Grid((n, n, n), dx, (("wall", "wall"),) * 3)
-    x = (np.arange(n) + 0.5) * dx
-    left = (x < 0.25)[:, None, None] & np.ones((n, n), bool)
-    state = gas.conserved(np.where(left, 2.0, 1.0), np.zeros((3, n, n, n)), np.where(left, 4.0, 1.0))
-    solid = coupled.Solid.from_mesh(shapes.sphere(0.15, 0.5 * dx, center=(0.55, 0.5, 0.5)),
+    solid = coupled.Solid.from_mesh(shapes.sphere(0.15, 0.5 / n, center=(0.55, 0.5, 0.5)),
                                     NeoHookean(E=1e3, nu=0.3, density=2.0), p0=1.0)
-    mass0, momentum, energy0 = _totals(state, solid, dx)
-    worst, drift, iterations, start = 0.0, 0.0, [], solid.x.mean(axis=0)
-    for _ in range(60):
-        dt = coupled.time_step(state, solid, grid)
-        state, solid, info = coupled.step(state, solid, grid, dt)
-        p = info.pressure
-        wall = -dt * dx * dx * np.array([p[-1].sum() - p[0].sum(), p[:, -1].sum() - p[:, 0].sum(),
-                                         p[:, :, -1].sum() - p[:, :, 0].sum()])
-        mass, now, energy = _totals(state, solid, dx)
-        worst = max(worst, float(np.abs(now - momentum - wall).max()))
-        drift = max(drift, abs(energy / energy0 - 1.0))
-        momentum = now
-        iterations.append(info.cg_iterations)
+    _, mass0, mass, worst, drift, iterations, moved = _struck_box(solid, n, 60)
     assert mass == pytest.approx(mass0, rel=1e-15, abs=0.0)
     assert worst <= 4e-16 and drift <= 1e-5 and max(iterations) <= 10
-    moved = solid.x.mean(axis=0) - start
     assert moved[0] > 1e-4 and np.abs(moved[1:]).max() < 1e-3 * moved[0]
