@@ -56,10 +56,11 @@ def _compile(compiler: str, source: Path, out: Path) -> None:
             os.unlink(tmp)
 
 
-def build(source: Path, what: str, fallback: str) -> ctypes.CDLL | None:
+def build(source: Path, what: str, fallback: str, depends: tuple[Path, ...] = ()) -> ctypes.CDLL | None:
     """The library of ``source``, compiled into :func:`cache_dir` on first use, or None where it
     cannot be (warning once per call site's cache: ``what`` names the compiled code, ``fallback``
-    says what runs instead, e.g. "it runs in torch, several times slower")."""
+    says what runs instead, e.g. "it runs in torch, several times slower"). depends: the files
+    ``source`` includes, which take part in the cache key too."""
     if os.environ.get("BSMS_NATIVE", "1") == "0":
         return None
     compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
@@ -67,7 +68,8 @@ def build(source: Path, what: str, fallback: str) -> ctypes.CDLL | None:
         warnings.warn(f"no C compiler (cc) found: {fallback}; install gcc, or set BSMS_NATIVE=0 to silence this",
                       RuntimeWarning, stacklevel=3)
         return None
-    key = hashlib.sha256("\n".join([source.read_text(), compiler, " ".join(FLAGS), platform.machine(),
+    texts = [source.read_text(), *(p.read_text() for p in depends)]
+    key = hashlib.sha256("\n".join([*texts, compiler, " ".join(FLAGS), platform.machine(),
                                     _cpu_model()]).encode()).hexdigest()[:16]
     path = cache_dir() / f"{source.stem}-{key}.so"
     try:

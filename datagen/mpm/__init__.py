@@ -9,6 +9,7 @@ kernel slots (transfers.py) or fixed sparse operators (operators.py), one nodal 
 
 from .diagnostics import diagnostics
 from .errors import SimulationError
+from .fused import advance
 from .kernels import Grid, KernelResult, MeshTables, bspline_kernel, linear_kernel, umls_kernel
 from .locate import CellLocator, LocateStatus, locate
 from .model import Grip, Model, WallPlane, compute_kernel
@@ -18,5 +19,5 @@ from .step import cfl_time_step, step
 __all__ = [
     "Grid", "KernelResult", "MeshTables", "bspline_kernel", "linear_kernel", "umls_kernel",
     "CellLocator", "LocateStatus", "locate", "Model", "SimulationError", "State", "step",
-    "Grip", "WallPlane", "compute_kernel", "cfl_time_step", "diagnostics",
+    "Grip", "WallPlane", "compute_kernel", "cfl_time_step", "diagnostics", "advance",
 ]

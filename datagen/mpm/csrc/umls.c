@@ -15,7 +15,7 @@
 #define AHEAD 4  /* particles ahead whose cell tables are prefetched */
 
 /* Inverse of the symmetric d x d matrix q by the adjugate (as datagen.mpm.linalg.inv). */
-static inline void inverse(int d, const double q[3][3], double out[3][3]) {
+static inline __attribute__((always_inline)) void inverse(int d, const double q[3][3], double out[3][3]) {
     if (d == 1) { out[0][0] = 1.0 / q[0][0]; return; }
     if (d == 2) {
         double det = q[0][0] * q[1][1] - q[0][1] * q[1][0];
@@ -38,7 +38,7 @@ static inline void inverse(int d, const double q[3][3], double out[3][3]) {
 /* The kernel of particle p (see bsms_umls_weights); r, s: scratch of K doubles per axis / one.
  * Writes p's slots of index, weight and grad; returns the number of slots used (0: no kernel)
  * and sets *neg when an MLS weight is negative. */
-static inline int64_t kernel_one(int64_t p, int64_t P, int64_t K, int64_t d, int64_t use_eta, double inv_h,
+static inline __attribute__((always_inline)) int64_t kernel_one(int64_t p, int64_t P, int64_t K, int64_t d, int64_t use_eta, double inv_h,
                                  const double *restrict x, const int64_t *restrict cell,
                                  const int8_t *restrict status, const double *restrict bary,
                                  const int64_t *restrict ring, const uint8_t *restrict adjacency,
@@ -163,7 +163,7 @@ int bsms_umls_weights(int64_t P, int64_t K, int64_t d, int64_t use_eta, double i
 #define BLOCKS 4
 
 /* P2G of particle p's first `slots` slots into the node-major block copy `out` (N x (1+2d)). */
-static inline void p2g_particle(int64_t p, int64_t slots, int64_t K, int64_t d, int64_t PK,
+static inline __attribute__((always_inline)) void p2g_particle(int64_t p, int64_t slots, int64_t K, int64_t d, int64_t PK,
                                 const int64_t *restrict index, const double *restrict weight,
                                 const double *restrict grad, const double *restrict offset,
                                 const double *restrict mass, const double *restrict v, const double *restrict coef,
