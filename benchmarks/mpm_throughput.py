@@ -2,15 +2,21 @@
 
 An elastic block, spinning and drifting so that particles cross cells, sits in a box meshed
 with element size about twice the particle spacing (the grid of the structured B-spline solver has
-that spacing too). ``umls`` recomputes the kernel every step (cell search included); in 3D the
-A-ULMPM ``total`` and ``adaptive`` reference configurations, which keep it, are timed too. A
-structured quadratic MLS-MPM written in taichi (``taichi_mpm.py``, its CPU backend, the same
-threads) runs on the same particle counts in the benchmark's own environment: this interpreter
-if it has taichi, else a venv made at ``--taichi-env`` on first use (taichi is never a
-dependency of the package). Ends with exactly
-``throughput 3D: UMLS U M/s, taichi T M/s`` (particle-steps per second, kernel rebuilt every
-step, the largest 3D size, same run). The solver's per-particle loops are the compiled ones of
-:mod:`datagen.mpm.native` where a C compiler is available (``BSMS_NATIVE=0`` times the torch code).
+that spacing too). Steps run as a simulation runs them: ``--steps`` substeps per call of
+:func:`datagen.mpm.advance`, which runs eulerian UMLS substeps in one compiled call
+(:mod:`datagen.mpm.fused`) and every other solver one Python step at a time. ``umls`` recomputes
+the kernel every step (cell search included); ``umls python`` is the same solver one Python
+step at a time (the compiled kernels between torch operators: how it ran before the compiled
+substeps); in 3D the A-ULMPM ``total`` and ``adaptive`` reference configurations, which keep the
+kernel, are timed too. A structured quadratic MLS-MPM written in taichi (``taichi_mpm.py``, its
+CPU backend, the same threads) runs on the same particle counts in the benchmark's own
+environment: this interpreter if it has taichi, else a venv made at ``--taichi-env`` on first use
+(taichi is never a dependency of the package). Ends with exactly
+``throughput 2D: UMLS U M/s, taichi T M/s, ratio R`` and
+``throughput 3D: UMLS U M/s, taichi T M/s, ratio R`` (particle-steps per second, kernel rebuilt
+every step, the largest size of each dimension, same run; float64). The solver's per-particle loops
+are the compiled ones of :mod:`datagen.mpm.native` where a C compiler is available
+(``BSMS_NATIVE=0`` times the torch code).
 
 By default glibc's malloc is told to keep freed memory (large mmap and trim thresholds, the
 same as exporting MALLOC_MMAP_THRESHOLD_ / MALLOC_TRIM_THRESHOLD_): torch on CPU allocates
@@ -39,7 +45,7 @@ from taichi_mpm import DENSITY, NU, E, block
 
 from datagen import shapes
 from datagen.layer import with_extra_layer
-from datagen.mpm import Model, State, cfl_time_step, native, step
+from datagen.mpm import Model, State, advance, cfl_time_step, native, step
 from datagen.mpm.kernels import Grid, MeshTables
 from datagen.mpm.materials import NeoHookean
 
@@ -62,18 +68,25 @@ def bspline_model(dim: int, spacing: float, device) -> Model:
     return Model(grid, "bspline", "flip", ((MATERIAL, None),), (), gravity, nodes, grid.spacing)
 
 
-def time_steps(model: Model, state: State, steps: int, repeats: int = 3) -> float:
-    """Best mean seconds per step over ``repeats`` runs of ``steps`` steps (after a warm-up)."""
+def time_steps(model: Model, state: State, steps: int, repeats: int = 3, python: bool = False) -> float:
+    """Best mean seconds per step over ``repeats`` runs of ``steps`` steps (after a warm-up), each run
+    one call of :func:`advance` (``python``: one Python :func:`step` per step)."""
     dt = cfl_time_step(model, state, 0.3)
-    for _ in range(3):
-        state = step(model, state, dt)
+
+    def run(state: State, n: int) -> State:
+        if python:
+            for _ in range(n):
+                state = step(model, state, dt)
+            return state
+        return advance(model, state, dt, n)
+
+    state = run(state, 3)
     best = math.inf
     for _ in range(repeats):
         if state.x.is_cuda:
             torch.cuda.synchronize()
         start = time.perf_counter()
-        for _ in range(steps):
-            state = step(model, state, dt)
+        state = run(state, steps)
         if state.x.is_cuda:
             torch.cuda.synchronize()
         best = min(best, (time.perf_counter() - start) / steps)
@@ -81,16 +94,17 @@ def time_steps(model: Model, state: State, steps: int, repeats: int = 3) -> floa
 
 
 def measure(kind: str, dim: int, n: int, steps: int, device) -> dict:
-    """kind: ``bspline``, ``umls`` (kernel rebuilt every step), ``umls total`` or ``umls adaptive``
-    (A-ULMPM reference configurations: the kernel kept while the reference holds)."""
+    """kind: ``bspline``, ``umls`` (kernel rebuilt every step), ``umls python`` (the same, one Python
+    step at a time), ``umls total`` or ``umls adaptive`` (A-ULMPM reference configurations: the
+    kernel kept while the reference holds)."""
     x, v, vol, spacing = block(n, dim)
     start = time.perf_counter()
     model = bspline_model(dim, spacing, device) if kind == "bspline" else umls_model(dim, spacing, device)
-    if kind.startswith("umls "):
+    if kind in ("umls total", "umls adaptive"):
         model = replace(model, reference=kind.split()[1])
     setup = time.perf_counter() - start
     state = State.at_rest_shape(x, v, vol, MATERIAL.density, device=device)
-    per_step = time_steps(model, state, steps)
+    per_step = time_steps(model, state, steps, python=kind == "umls python")
     return {"kind": kind, "dim": dim, "particles": len(x), "nodes": model.n_nodes,
             "setup_s": setup, "ms_per_step": 1e3 * per_step, "particle_steps_per_s": len(x) / per_step}
 
@@ -156,7 +170,7 @@ def main() -> None:
     rows, taichi = [], []
     for dim in args.dims:
         for n in args.sizes:
-            kinds = ("bspline", "umls", *(("umls total", "umls adaptive") if dim == 3 else ()))
+            kinds = ("bspline", "umls", "umls python", *(("umls total", "umls adaptive") if dim == 3 else ()))
             measured = {kind: measure(kind, dim, n, args.steps, device) for kind in kinds}
             for kind, row in measured.items():
                 row["ratio_over_bspline"] = row["particle_steps_per_s"] / measured["bspline"]["particle_steps_per_s"]
@@ -173,12 +187,22 @@ def main() -> None:
     summary = {"threads": args.threads, "device": str(device), "malloc_keeps_freed_memory": tuned, "rows": rows,
                "taichi": taichi}
     (args.out / "results.json").write_text(json.dumps(summary, indent=1))
-    largest = max(r["particles"] for r in rows if r["dim"] == 3 and r["kind"] == "umls")
-    umls = next(r for r in rows if r["dim"] == 3 and r["kind"] == "umls" and r["particles"] == largest)
-    ti_3d = next((t for t in taichi if t["dim"] == 3 and t["particles"] == largest), None)
-    ti_text = "n/a" if ti_3d is None else f"{ti_3d['particle_steps_per_s'] / 1e6:#.3g}"
-    print(f"throughput 3D: UMLS {umls['particle_steps_per_s'] / 1e6:#.3g} M/s, taichi {ti_text} M/s")
+    for dim in (2, 3):
+        print(_summary(rows, taichi, dim))
 
+
+def _summary(rows: list[dict], taichi: list[dict], dim: int) -> str:
+    """``throughput {dim}D: UMLS U M/s, taichi T M/s, ratio R`` at the largest size of ``dim`` ("n/a"
+    where taichi did not run or the dimension was not measured)."""
+    umls = [r for r in rows if r["dim"] == dim and r["kind"] == "umls"]
+    if not umls:
+        return f"throughput {dim}D: UMLS n/a M/s, taichi n/a M/s, ratio n/a"
+    row = max(umls, key=lambda r: r["particles"])
+    ti = next((t for t in taichi if t["dim"] == dim and t["particles"] == row["particles"]), None)
+    rate = row["particle_steps_per_s"]
+    ti_text = "n/a" if ti is None else f"{ti['particle_steps_per_s'] / 1e6:#.3g}"
+    ratio = "n/a" if ti is None else f"{rate / ti['particle_steps_per_s']:.3f}"
+    return f"throughput {dim}D: UMLS {rate / 1e6:#.3g} M/s, taichi {ti_text} M/s, ratio {ratio}"
 
 if __name__ == "__main__":
     main()
