@@ -120,16 +120,25 @@ class _Compiled:
         plan.inv_h, plan.damping = 1.0 / tables.h, float(model.damping)
         for a, g in enumerate(model.gravity.tolist()):
             plan.gravity[a] = g
-        plan.ring, plan.adjacency = address(tables.ring), address(tables.ring_adjacency, torch.uint8)
-        plan.nodes = address(model.node_positions)
-        plan.cells, plan.bary_grad = address(tables.cells, torch.int64), address(tables.bary_grad, torch.float64)
+        # nodes and cells renumbered along a Z-order curve inside the plan (module docstring)
+        nodes = model.node_positions.cpu()
+        node_order = _z_order(nodes.numpy())
+        cell_order = _z_order(nodes[tables.cells.cpu()].mean(1).numpy())
+        self.node_rank, self.cell_rank = _ranks(node_order), _ranks(cell_order)
+        self.cell_order = cell_order
+        node_id = lambda ids: _relabel(self.node_rank, ids)  # noqa: E731
+        plan.ring = address(node_id(tables.ring.cpu()[cell_order]))
+        plan.adjacency = address(tables.ring_adjacency.cpu()[cell_order], torch.uint8)
+        plan.nodes = address(nodes[node_order])
+        plan.cells = address(node_id(tables.cells.cpu()[cell_order]))
+        plan.bary_grad = address(tables.bary_grad.cpu()[cell_order], torch.float64)
         mu, lam = torch.empty(n_particles, dtype=torch.float64), torch.empty(n_particles, dtype=torch.float64)
         kind = torch.empty(n_particles, dtype=torch.int8)
         for material, ids in model.materials:
             sel = slice(None) if ids is None else ids.cpu()
             mu[sel], lam[sel], kind[sel] = material.mu, material.lam, _MATERIALS[type(material)]
         plan.mu, plan.lam, plan.material = address(mu), address(lam), address(kind)
-        self.conditions = self._conditions(model, address)
+        self.conditions = self._conditions(model, address, lambda t: address(node_id(t.cpu().to(torch.int64))))
         plan.conditions, plan.n_conditions = ctypes.addressof(self.conditions), len(self.conditions)
         self.colliders = (_Collider * max(1, len(model.colliders)))()
         for slot, collider in zip(self.colliders, model.colliders, strict=False):
@@ -138,14 +147,17 @@ class _Compiled:
                 slot.size[a] = s
         plan.colliders, plan.n_colliders = ctypes.addressof(self.colliders), len(model.colliders)
         loc = tables.locator
-        plan.locator = _Locator(address(loc.origin), address(loc.corner), address(loc.to_bary), loc.spacing,
-                                BARYCENTRIC_TOL, address(loc.shape), address(loc.strides), address(loc.buckets),
+        plan.locator = _Locator(address(loc.origin), address(loc.corner.cpu()[cell_order]),
+                                address(loc.to_bary.cpu()[cell_order]), loc.spacing, BARYCENTRIC_TOL,
+                                address(loc.shape), address(loc.strides),
+                                address(_relabel(self.cell_rank, loc.buckets.cpu())),  # same order per bucket
                                 loc.buckets.shape[0], loc.buckets.shape[1])
 
     @staticmethod
-    def _conditions(model: Model, address):
+    def _conditions(model: Model, address, node_ids):
         """The conditions in the order :func:`~datagen.mpm.nodal.constrain` applies them; the
-        colliders (kind 4) after the walls and clamps and before the mirror ghosts."""
+        colliders (kind 4) after the walls and clamps and before the mirror ghosts. address(t,
+        dtype): a kept tensor's address; node_ids(t): the address of node ids in the plan's numbering."""
         order = list(model.conditions)
         if model.colliders:
             order = [c for c in order if not isinstance(c, Mirror)] + ["colliders"] + \
@@ -156,17 +168,42 @@ class _Compiled:
                 slot.kind = 4
                 continue
             slot.kind = {Sticky: 0, Slip: 1, SeparatingSlip: 2, Mirror: 3}[type(c)]
-            slot.nodes = address(c.ghosts if isinstance(c, Mirror) else c.nodes, torch.int64)
+            slot.nodes = node_ids(c.ghosts if isinstance(c, Mirror) else c.nodes)
             slot.count = len(c.ghosts if isinstance(c, Mirror) else c.nodes)
             if isinstance(c, (Slip, SeparatingSlip)):
                 slot.normals = address(c.normals.T, torch.float64)
                 slot.friction = getattr(c, "friction", 0.0)
             if isinstance(c, Mirror):
-                slot.per, slot.sources = c.sources.shape[1], address(c.sources, torch.int64)
+                slot.per, slot.sources = c.sources.shape[1], node_ids(c.sources)
                 slot.weights = address(c.weights, torch.float64)
                 if c.wall is not None:
-                    slot.wall_count, slot.wall = len(c.wall), address(c.wall, torch.int64)
+                    slot.wall_count, slot.wall = len(c.wall), node_ids(c.wall)
         return out
+
+
+def _z_order(points: np.ndarray) -> torch.Tensor:
+    """The permutation (int64) that sorts points (n, d) along a Z-order (Morton) curve: each
+    coordinate quantised to 21 bits over the points' box, the bits interleaved, ties by index."""
+    lo, hi = points.min(0), points.max(0)
+    q = ((points - lo) / np.where(hi > lo, hi - lo, 1.0) * (2**21 - 1)).astype(np.uint64)
+    key = np.zeros(len(points), dtype=np.uint64)
+    d = points.shape[1]
+    for bit in range(21):
+        for a in range(d):
+            key |= ((q[:, a] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(bit * d + a)
+    return torch.from_numpy(np.argsort(key, kind="stable"))
+
+
+def _ranks(order: torch.Tensor) -> torch.Tensor:
+    """The inverse permutation of ``order``: rank[order[i]] = i."""
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(len(order))
+    return rank
+
+
+def _relabel(rank: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+    """ids (any shape, -1 = none) in the renumbering ``rank`` (old id -> new id)."""
+    return torch.where(ids >= 0, rank[ids.clamp(min=0)], ids)
 
 
 _plans: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -209,14 +246,15 @@ def advance(model: Model, state: State, dt: float, steps: int) -> State:
         mass, volume0 = state.mass.contiguous(), state.volume0.contiguous()
         plan.mass, plan.volume0 = mass.data_ptr(), volume0.data_ptr()
         plan.mass_floor, plan.threads = float(MASS_FLOOR * mass.mean()), torch.get_num_threads()
-        x, v, F, cell = (t.clone(memory_format=torch.contiguous_format)
-                         for t in (state.x, state.v, state.F, state.cell))
+        x, v, F = (t.clone(memory_format=torch.contiguous_format) for t in (state.x, state.v, state.F))
+        cell = _relabel(compiled_plan.cell_rank, state.cell).contiguous()
         time, done = f64(state.time), i64(0)
         code = lib.bsms_substeps(ctypes.byref(plan), left, dt, x.data_ptr(), v.data_ptr(), F.data_ptr(),
                                  cell.data_ptr(), ctypes.byref(time), ctypes.byref(done))
         if code in (4, 5):
             raise RuntimeError(f"compiled substeps: {_STATUS[code]} ({len(state.x)} particles, {model.n_nodes} nodes)")
         if done.value:
+            cell = _relabel(compiled_plan.cell_order, cell)  # back to the mesh's numbering
             state = replace(state, x=x, v=v, F=F, cell=cell, time=time.value, step=state.step + done.value)
         left -= done.value
         if code != 0 and left > 0:  # this substep in torch: it replaces the kernel or raises
