@@ -1,20 +1,30 @@
-"""Many eulerian substeps in one compiled call (``csrc/substeps.c``): :func:`advance`.
+"""Many substeps in one compiled call (``csrc/substeps.c``): :func:`advance`.
 
 A small substep -- a press letter's 1,200 particles -- spends more time in the two hundred torch
 operators and the Python between the compiled kernels than in the kernels themselves
-(``benchmarks/substep_overhead.py``). :func:`advance` runs ``n`` substeps of
-:func:`~datagen.mpm.step.eulerian_step` inside C instead: cell search, kernel, stress, P2G, the
-mirror folds, the nodal update with gravity, damping, walls, clamps, colliders and mirror
-ghosts, FLIP or PIC G2P, the F update and F-bar, returning to Python once per call.
+(``benchmarks/substep_overhead.py``). :func:`advance` runs ``n`` substeps inside C instead and
+returns to Python once per call:
 
-It applies to the eulerian UMLS kernel with FLIP or PIC on the CPU in float64, elastic
-materials (linear, Neo-Hookean, fixed corotated), and no grips; everything else (the A-ULMPM
-reference modes, APIC, MUSL, plasticity, viscosity, grips, other kernels or devices) steps
-through :func:`~datagen.mpm.step.step` as before, and so does any substep the compiled code
-declines before changing the state: a particle lost from the mesh, a kernel with negative MLS
-weights (replaced in torch by the closest non-negative one) or a non-finite result (torch then
-raises :class:`~datagen.mpm.errors.SimulationError` with its advice). The torch step is the
-reference: the tests hold every feature of the compiled substep to it at round-off, and node
+- **eulerian** (:func:`~datagen.mpm.step.eulerian_step`): cell search, kernel (with the closest
+  non-negative kernel where MLS weights go negative), stress, P2G, the mirror folds, the nodal
+  update with gravity, damping, walls, clamps, colliders and mirror ghosts, FLIP or PIC G2P, the
+  F update and F-bar. Inside its plan the background's nodes and cells are renumbered along a
+  Z-order curve for memory locality, keeping every slot and hash-bucket order, so the results
+  are bitwise those of the mesh's own numbering.
+- **A-ULMPM total and adaptive** (:func:`~datagen.mpm.reference.reference_step`) between updates
+  of the reference configuration: P2G with the reference kernel and the stress tau (F^{sn})^-T,
+  the nodal update with the wall planes on the moved nodes, the pinned conditions and the
+  colliders, G2P with F^{sn} += dt grad_s v and F = F^{sn} F^{0s}, F-bar, the moved nodes and
+  their drift, and the adaptive mode's strain and contact triggers. A substep that makes an
+  update due ends the call; the rebuild (a new kernel, clusters, gaps) runs in Python.
+
+It applies to the UMLS kernel with FLIP or PIC on the CPU in float64, elastic materials (linear,
+Neo-Hookean, fixed corotated) and no grips; everything else (APIC, MUSL, plasticity, viscosity,
+grips, the linear and B-spline kernels, other devices) steps through
+:func:`~datagen.mpm.step.step` as before, and so does any substep the compiled code declines
+before changing the state (a particle lost from the mesh, a non-finite result): the Python step
+then raises :class:`~datagen.mpm.errors.SimulationError` with its advice. The Python step is the
+reference: the tests hold every feature of the compiled substeps to it at round-off, and node
 sums use fixed particle blocks, so results do not depend on the thread count.
 ``BSMS_NATIVE=0`` turns it off with the other compiled code; ``BSMS_FUSED=0`` turns off only this
 (every substep a Python step with the compiled kernels, as before it: for comparisons).
@@ -34,6 +44,7 @@ import torch
 
 from datagen import compiled
 
+from . import linalg
 from .boundary import Mirror, SeparatingSlip, Slip, Sticky
 from .kernels import MeshTables
 from .locate import BARYCENTRIC_TOL
@@ -49,6 +60,7 @@ SOURCE = Path(__file__).with_name("csrc") / "substeps.c"
 DEPENDS = (Path(__file__).with_name("csrc") / "umls.c",)
 _MATERIALS = {LinearElastic: 0, NeoHookean: 1, FixedCorotated: 2}
 _SHAPES = {"disk": 0, "sphere": 0, "box": 1, "wedge": 2}
+_PLANES = {"sticky": 0, "slip": 1, "separating": 2}
 _STATUS = {1: "a particle left the cells searched", 2: "negative MLS weights", 3: "a non-finite result",
            4: "out of memory", 5: "unsupported shapes"}
 i64, f64, ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
@@ -77,6 +89,14 @@ class _Plan(ctypes.Structure):
         ("mu", ptr), ("lam", ptr), ("material", ptr), ("conditions", ptr), ("colliders", ptr), ("locator", _Locator)]
 
 
+class _Reference(ctypes.Structure):
+    _fields_ = [("index", ptr), ("weight", ptr), ("grad", ptr), ("support", ptr), ("rest", ptr), ("wall_gap", f64),
+                ("epsilon", f64), ("fraction", f64), ("contact", f64), ("adaptive", i64), ("n_planes", i64),
+                ("n_clusters", i64), ("planes_due", i64), ("plane_kind", ptr), ("cluster", ptr),
+                ("plane_friction", ptr), ("normal", ptr), ("offset", ptr), ("low", ptr), ("high", ptr),
+                ("tangents", ptr), ("lower", ptr), ("upper", ptr), ("gaps", ptr)]
+
+
 @functools.cache
 def library() -> ctypes.CDLL | None:
     """The compiled substeps (built on first use), or None where they cannot be."""
@@ -87,19 +107,29 @@ def library() -> ctypes.CDLL | None:
     lib.bsms_substeps.argtypes = [ctypes.POINTER(_Plan), i64, f64, ptr, ptr, ptr, ptr, ctypes.POINTER(f64),
                                   ctypes.POINTER(i64)]
     lib.bsms_substeps.restype = ctypes.c_int
+    lib.bsms_reference_substeps.argtypes = [ctypes.POINTER(_Plan), ctypes.POINTER(_Reference), i64, f64] + \
+        [ptr] * 6 + [ctypes.POINTER(f64)] * 2 + [ctypes.POINTER(i64)]
+    lib.bsms_reference_substeps.restype = ctypes.c_int
     return lib
 
 
 def applies(model: Model, state: State) -> bool:
     """Whether :func:`advance` runs this model's substeps compiled (module docstring)."""
-    return (os.environ.get("BSMS_FUSED", "1") != "0" and model.reference == "eulerian" and state.reference is None
+    return (os.environ.get("BSMS_FUSED", "1") != "0" and (model.reference != "eulerian" or state.reference is None)
             and model.kernel == "umls" and model.transfer in ("flip", "pic")
             and isinstance(model.background, MeshTables)
             and not (model.grips or model.plastic or model.viscous or state.velocity_gradient is not None)
             and all(type(m) in _MATERIALS for m, _ in model.materials)
-            and all(type(c) in (Sticky, Slip, SeparatingSlip, Mirror) for c in model.conditions)
+            and all(type(c) in (Sticky, Slip, SeparatingSlip, Mirror) for c in _index_conditions(model))
+            and all(w.kind in _PLANES for w in model.wall_planes or ())
             and state.x.device.type == "cpu" and state.x.dtype == torch.float64
             and model.node_positions.dtype == torch.float64 and model.dim in (2, 3) and library() is not None)
+
+
+def _index_conditions(model: Model) -> tuple:
+    """The conditions applied by node index (datagen.mpm.nodal.index_conditions): all of them in
+    eulerian mode or without wall planes, else the pinned ones (the planes act on moved nodes)."""
+    return model.conditions if model.reference == "eulerian" or model.wall_planes is None else model.pinned
 
 
 class _Compiled:
@@ -120,18 +150,27 @@ class _Compiled:
         plan.inv_h, plan.damping = 1.0 / tables.h, float(model.damping)
         for a, g in enumerate(model.gravity.tolist()):
             plan.gravity[a] = g
-        # nodes and cells renumbered along a Z-order curve inside the plan (module docstring)
         nodes = model.node_positions.cpu()
-        node_order = _z_order(nodes.numpy())
-        cell_order = _z_order(nodes[tables.cells.cpu()].mean(1).numpy())
-        self.node_rank, self.cell_rank = _ranks(node_order), _ranks(cell_order)
-        self.cell_order = cell_order
-        node_id = lambda ids: _relabel(self.node_rank, ids)  # noqa: E731
-        plan.ring = address(node_id(tables.ring.cpu()[cell_order]))
-        plan.adjacency = address(tables.ring_adjacency.cpu()[cell_order], torch.uint8)
-        plan.nodes = address(nodes[node_order])
-        plan.cells = address(node_id(tables.cells.cpu()[cell_order]))
-        plan.bary_grad = address(tables.bary_grad.cpu()[cell_order], torch.float64)
+        if model.reference == "eulerian":  # nodes and cells renumbered along a Z-order curve (module docstring)
+            node_order = _z_order(nodes.numpy())
+            cell_order = _z_order(nodes[tables.cells.cpu()].mean(1).numpy())
+            self.node_rank, self.cell_rank = _ranks(node_order), _ranks(cell_order)
+            self.cell_order = cell_order
+            node_id = lambda ids: _relabel(self.node_rank, ids)  # noqa: E731
+            plan.ring = address(node_id(tables.ring.cpu()[cell_order]))
+            plan.adjacency = address(tables.ring_adjacency.cpu()[cell_order], torch.uint8)
+            plan.nodes = address(nodes[node_order])
+            plan.cells = address(node_id(tables.cells.cpu()[cell_order]))
+            plan.bary_grad = address(tables.bary_grad.cpu()[cell_order], torch.float64)
+            loc = tables.locator
+            plan.locator = _Locator(address(loc.origin), address(loc.corner.cpu()[cell_order]),
+                                    address(loc.to_bary.cpu()[cell_order]), loc.spacing, BARYCENTRIC_TOL,
+                                    address(loc.shape), address(loc.strides),
+                                    address(_relabel(self.cell_rank, loc.buckets.cpu())),  # same order per bucket
+                                    loc.buckets.shape[0], loc.buckets.shape[1])
+        else:  # A-ULMPM: the reference kernel comes from Python in the mesh's numbering
+            node_id = lambda ids: ids  # noqa: E731
+            plan.nodes = address(nodes)
         mu, lam = torch.empty(n_particles, dtype=torch.float64), torch.empty(n_particles, dtype=torch.float64)
         kind = torch.empty(n_particles, dtype=torch.int8)
         for material, ids in model.materials:
@@ -146,19 +185,13 @@ class _Compiled:
             for a, s in enumerate(collider.size):
                 slot.size[a] = s
         plan.colliders, plan.n_colliders = ctypes.addressof(self.colliders), len(model.colliders)
-        loc = tables.locator
-        plan.locator = _Locator(address(loc.origin), address(loc.corner.cpu()[cell_order]),
-                                address(loc.to_bary.cpu()[cell_order]), loc.spacing, BARYCENTRIC_TOL,
-                                address(loc.shape), address(loc.strides),
-                                address(_relabel(self.cell_rank, loc.buckets.cpu())),  # same order per bucket
-                                loc.buckets.shape[0], loc.buckets.shape[1])
 
     @staticmethod
     def _conditions(model: Model, address, node_ids):
         """The conditions in the order :func:`~datagen.mpm.nodal.constrain` applies them; the
         colliders (kind 4) after the walls and clamps and before the mirror ghosts. address(t,
         dtype): a kept tensor's address; node_ids(t): the address of node ids in the plan's numbering."""
-        order = list(model.conditions)
+        order = list(_index_conditions(model))
         if model.colliders:
             order = [c for c in order if not isinstance(c, Mirror)] + ["colliders"] + \
                     [c for c in order if isinstance(c, Mirror)]
@@ -236,28 +269,90 @@ def advance(model: Model, state: State, dt: float, steps: int) -> State:
         for _ in range(steps):
             state = step(model, state, dt)
         return state
-    lib, left = library(), steps
+    left = steps
     while left > 0:
-        compiled_plan = _compiled(model, len(state.x))
-        plan = compiled_plan.plan
-        paths = _collider_paths(model, state.time, dt, left)
-        for slot, (centre, velocity) in zip(compiled_plan.colliders, paths, strict=False):
-            slot.centre, slot.velocity = centre.ctypes.data, velocity.ctypes.data
-        mass, volume0 = state.mass.contiguous(), state.volume0.contiguous()
-        plan.mass, plan.volume0 = mass.data_ptr(), volume0.data_ptr()
-        plan.mass_floor, plan.threads = float(MASS_FLOOR * mass.mean()), torch.get_num_threads()
-        x, v, F = (t.clone(memory_format=torch.contiguous_format) for t in (state.x, state.v, state.F))
-        cell = _relabel(compiled_plan.cell_rank, state.cell).contiguous()
-        time, done = f64(state.time), i64(0)
-        code = lib.bsms_substeps(ctypes.byref(plan), left, dt, x.data_ptr(), v.data_ptr(), F.data_ptr(),
-                                 cell.data_ptr(), ctypes.byref(time), ctypes.byref(done))
-        if code in (4, 5):
-            raise RuntimeError(f"compiled substeps: {_STATUS[code]} ({len(state.x)} particles, {model.n_nodes} nodes)")
-        if done.value:
-            cell = _relabel(compiled_plan.cell_order, cell)  # back to the mesh's numbering
-            state = replace(state, x=x, v=v, F=F, cell=cell, time=time.value, step=state.step + done.value)
-        left -= done.value
-        if code != 0 and left > 0:  # this substep in torch: it replaces the kernel or raises
+        ref = state.reference
+        if model.reference != "eulerian" and (ref is None or ref.kernel is None or ref.stale or ref.operators is None):
+            state = step(model, state, dt)  # (re)builds the reference configuration
+            left -= 1
+            continue
+        call = _eulerian_call if model.reference == "eulerian" else _reference_call
+        state, done, code = call(model, state, dt, left)
+        left -= done
+        if code in (1, 3) and left > 0:  # this substep in torch: it raises with its advice
             state = step(model, state, dt)
             left -= 1
     return state
+
+
+def _prepared(model: Model, state: State, dt: float, steps: int) -> _Compiled:
+    """The model's plan, set for ``steps`` substeps from ``state`` (collider paths, masses, threads)."""
+    compiled_plan = _compiled(model, len(state.x))
+    plan = compiled_plan.plan
+    compiled_plan.paths = _collider_paths(model, state.time, dt, steps)  # kept alive with the plan
+    for slot, (centre, velocity) in zip(compiled_plan.colliders, compiled_plan.paths, strict=False):
+        slot.centre, slot.velocity = centre.ctypes.data, velocity.ctypes.data
+    compiled_plan.particles = mass, volume0 = state.mass.contiguous(), state.volume0.contiguous()
+    plan.mass, plan.volume0 = mass.data_ptr(), volume0.data_ptr()
+    plan.mass_floor, plan.threads = float(MASS_FLOOR * mass.mean()), torch.get_num_threads()
+    return compiled_plan
+
+
+def _check(code: int, model: Model, state: State) -> None:
+    if code in (4, 5):
+        raise RuntimeError(f"compiled substeps: {_STATUS[code]} ({len(state.x)} particles, {model.n_nodes} nodes)")
+
+
+def _eulerian_call(model: Model, state: State, dt: float, steps: int) -> tuple[State, int, int]:
+    compiled_plan = _prepared(model, state, dt, steps)
+    x, v, F = (t.clone(memory_format=torch.contiguous_format) for t in (state.x, state.v, state.F))
+    cell = _relabel(compiled_plan.cell_rank, state.cell).contiguous()
+    time, done = f64(state.time), i64(0)
+    code = library().bsms_substeps(ctypes.byref(compiled_plan.plan), steps, dt, x.data_ptr(), v.data_ptr(),
+                                   F.data_ptr(), cell.data_ptr(), ctypes.byref(time), ctypes.byref(done))
+    _check(code, model, state)
+    if done.value:
+        cell = _relabel(compiled_plan.cell_order, cell)  # back to the mesh's numbering
+        state = replace(state, x=x, v=v, F=F, cell=cell, time=time.value, step=state.step + done.value)
+    return state, done.value, code
+
+
+def _reference_call(model: Model, state: State, dt: float, steps: int) -> tuple[State, int, int]:
+    """A-ULMPM substeps on the current reference configuration until one makes an update due."""
+    compiled_plan = _prepared(model, state, dt, steps)
+    ref, keep = state.reference, []
+
+    def address(t: torch.Tensor | None, dtype=None) -> int | None:
+        if t is None:
+            return None
+        t = t.to(dtype=dtype or t.dtype).contiguous()
+        keep.append(t)
+        return t.data_ptr()
+
+    k = ref.kernel
+    R = _Reference(address(k.index), address(k.weight), address(k.grad_axes), address(ref.active, torch.uint8),
+                   address(model.node_positions), ref.wall_gap, model.epsilon, model.fraction,
+                   model.contact_margin * model.cell_size if model.contact_margin is not None else -1.0,
+                   int(model.reference == "adaptive"), len(model.wall_planes or ()),
+                   0 if ref.gaps is None else ref.gaps.shape[0], 0)
+    R.cluster, R.gaps = address(ref.cluster, torch.int64), address(ref.gaps, torch.float64)
+    if model.wall_planes:
+        table = model._walls
+        R.plane_kind = address(torch.tensor([_PLANES[w.kind] for w in model.wall_planes]))
+        R.plane_friction = address(torch.tensor([float(w.friction) for w in model.wall_planes], dtype=torch.float64))
+        for name in ("normal", "offset", "low", "high", "tangents", "lower", "upper"):
+            setattr(R, name, address(table[name], torch.float64))
+    x, v = (t.clone(memory_format=torch.contiguous_format) for t in (state.x, state.v))
+    F, Fsn = (linalg.components(t).contiguous().clone() for t in (state.F, ref.Fsn))  # (d, d, P)
+    F0s, q = address(linalg.components(ref.F0s)), ref.nodes.contiguous().clone()
+    drift, time, done = f64(ref.drift), f64(state.time), i64(0)
+    code = library().bsms_reference_substeps(
+        ctypes.byref(compiled_plan.plan), ctypes.byref(R), steps, dt, x.data_ptr(), v.data_ptr(), F.data_ptr(),
+        Fsn.data_ptr(), F0s, q.data_ptr(), ctypes.byref(drift), ctypes.byref(time), ctypes.byref(done))
+    _check(code, model, state)
+    if done.value:
+        ref = replace(ref, Fsn=linalg.matrices(Fsn), nodes=q, drift=drift.value,
+                      stale={6: "strain", 7: "contact"}.get(code, ""))
+        state = replace(state, x=x, v=v, F=linalg.matrices(F), reference=ref, time=time.value,
+                        step=state.step + done.value)
+    return state, done.value, code
