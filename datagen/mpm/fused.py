@@ -57,7 +57,7 @@ from .step import step
 __all__ = ["advance", "applies", "library"]
 
 SOURCE = Path(__file__).with_name("csrc") / "substeps.c"
-DEPENDS = (Path(__file__).with_name("csrc") / "umls.c",)
+DEPENDS = tuple(Path(__file__).with_name("csrc") / name for name in ("umls.c", "nodes.h", "reference.h"))
 _MATERIALS = {LinearElastic: 0, NeoHookean: 1, FixedCorotated: 2}
 _SHAPES = {"disk": 0, "sphere": 0, "box": 1, "wedge": 2}
 _PLANES = {"sticky": 0, "slip": 1, "separating": 2}
