@@ -73,10 +73,12 @@ def test_sampling_is_seeded_and_differs_between_indices():
     assert trajectory_config(dconfig, "train", 3) != trajectory_config(dconfig, "test", 3)
 
 
-def test_press_deep_xl_extends_press_deep():
-    """press_deep_xl only adds training trajectories: the trajectories the two share are the same
-    simulations (its config tells users to hard-link them), and the rest are new."""
-    small, large = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in ("press_deep", "press_deep_xl"))
+@pytest.mark.parametrize("base", ["press_deep", "press_quickstart"])
+def test_the_xl_datasets_only_add_training_trajectories(base):
+    """press_deep_xl and press_quickstart_xl only add training trajectories: the trajectories each
+    shares with its base are the same simulations (its config tells users to hard-link them), and
+    the rest are new."""
+    small, large = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in (base, f"{base}_xl"))
     assert {k: v for k, v in large.items() if k not in ("dataset", "splits")} == \
         {k: v for k, v in small.items() if k not in ("dataset", "splits")}
     assert large["splits"]["train"] == 2 * small["splits"]["train"]
