@@ -61,8 +61,7 @@ DEPENDS = tuple(Path(__file__).with_name("csrc") / name for name in ("umls.c", "
 _MATERIALS = {LinearElastic: 0, NeoHookean: 1, FixedCorotated: 2}
 _SHAPES = {"disk": 0, "sphere": 0, "box": 1, "wedge": 2}
 _PLANES = {"sticky": 0, "slip": 1, "separating": 2}
-_STATUS = {1: "a particle left the cells searched", 2: "negative MLS weights", 3: "a non-finite result",
-           4: "out of memory", 5: "unsupported shapes"}
+_STATUS = {4: "out of memory", 5: "unsupported shapes"}  # the C codes that end a call with an error (csrc/nodes.h)
 i64, f64, ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 
 
