@@ -331,13 +331,12 @@ static void g2p_fields(const Plan *S, Scratch *W, int64_t c) {
         }
 }
 
-/* The nodal update (datagen.mpm.nodal.nodal_update) on the P2G sums W->sums: fold the mirror
- * ghosts' sums, velocities before (W->v) and after (W->v_new) the update, constrained. */
-typedef struct Reference Reference;
-static void apply_planes(const Plan *S, const Reference *R, const double *q, double *v);
-
-static void nodal(const Plan *S, Scratch *W, int64_t step, double dt, const double *positions,
-                  const Reference *R) {
+/* The nodal update (datagen.mpm.nodal.nodal_update) on the P2G sums W->sums, in two parts:
+ * nodal_velocities folds the mirror ghosts' sums and gives the velocities before (W->v) and after
+ * (W->v_new) the update, unconstrained; nodal_constrain applies the conditions to W->v_new in
+ * constrain's order, the colliders at the node positions given. The A-ULMPM step applies its
+ * wall planes between the two (reference.h). */
+static void nodal_velocities(const Plan *S, Scratch *W, double dt) {
     const int64_t d = S->d, N = S->N, rows = 1 + 2 * d;
     double *sums = W->sums;
     for (int64_t j = 0; j < S->n_conditions; j++) {
@@ -379,7 +378,11 @@ static void nodal(const Plan *S, Scratch *W, int64_t step, double dt, const doub
             va[a * N + i] = value;
         }
     }
-    if (R) apply_planes(S, R, positions, va); /* A-ULMPM: walls on the moved node positions, first */
+}
+
+static void nodal_constrain(const Plan *S, Scratch *W, int64_t step, const double *positions) {
+    const int64_t d = S->d, N = S->N;
+    double *va = W->v_new;
     for (int64_t j = 0; j < S->n_conditions; j++) {
         const Condition *c = S->conditions + j;
         if (c->kind == COLLIDERS)

@@ -5,7 +5,7 @@
 /* The reference configuration of datagen.mpm.reference between updates: its kernel (slots in the
  * layout of KernelResult), the wall planes (Model._walls) acting on the moved node positions, the
  * adaptive mode's triggers. Particle matrices F, F^{sn}, F^{0s} are stored by component (d, d, P). */
-struct Reference {
+typedef struct {
     const int64_t *index;
     const double *weight, *grad; /* (P, K), (P, K), (d, P, K) */
     const uint8_t *support;      /* (N) the nodes in the kernel's support (Reference.active) */
@@ -14,7 +14,7 @@ struct Reference {
     int64_t adaptive, n_planes, n_clusters, planes_due;
     const int64_t *plane_kind, *cluster; /* plane_kind: 0 sticky, 1 slip, 2 separating; cluster (N) */
     const double *plane_friction, *normal, *offset, *low, *high, *tangents, *lower, *upper, *gaps;
-};
+} Reference;
 
 /* WallPlane.apply_to on the support's nodes each plane holds at their moved positions q (N, d)
  * (datagen.mpm.nodal.constrain with _wall_members), plane by plane. */
@@ -107,7 +107,9 @@ static int reference_substep(const Plan *S, const Reference *R, Scratch *W, int6
         }
         add_blocks(N, rows, W->scratch, W->sums);
     }
-    nodal(S, W, step, dt, q, R);
+    nodal_velocities(S, W, dt);
+    apply_planes(S, R, q, W->v_new); /* walls on the moved node positions, first (datagen.mpm.nodal.constrain) */
+    nodal_constrain(S, W, step, q);
     const int64_t c = S->transfer_pic ? d : 2 * d;
     g2p_fields(S, W, c);
 #pragma omp parallel for schedule(static) num_threads(S->threads)

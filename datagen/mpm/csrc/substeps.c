@@ -245,7 +245,8 @@ static int substep(const Plan *S, Scratch *W, int64_t step, double dt, const dou
         }
         add_blocks(N, rows, W->scratch, W->sums);
     }
-    nodal(S, W, step, dt, S->nodes, 0);
+    nodal_velocities(S, W, dt);
+    nodal_constrain(S, W, step, S->nodes);
     const int64_t c = S->transfer_pic ? d : 2 * d;
     g2p_fields(S, W, c);
 #pragma omp parallel for schedule(static) num_threads(S->threads)
