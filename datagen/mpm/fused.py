@@ -50,7 +50,7 @@ from .kernels import MeshTables
 from .locate import BARYCENTRIC_TOL
 from .materials import FixedCorotated, LinearElastic, NeoHookean
 from .model import Model
-from .nodal import MASS_FLOOR
+from .nodal import MASS_FLOOR, index_conditions
 from .state import State
 from .step import step
 
@@ -119,22 +119,17 @@ def applies(model: Model, state: State) -> bool:
             and isinstance(model.background, MeshTables)
             and not (model.grips or model.plastic or model.viscous or state.velocity_gradient is not None)
             and all(type(m) in _MATERIALS for m, _ in model.materials)
-            and all(type(c) in (Sticky, Slip, SeparatingSlip, Mirror) for c in _index_conditions(model))
+            and all(type(c) in (Sticky, Slip, SeparatingSlip, Mirror) for c in (*model.conditions, *model.pinned))
             and all(w.kind in _PLANES for w in model.wall_planes or ())
             and state.x.device.type == "cpu" and state.x.dtype == torch.float64
             and model.node_positions.dtype == torch.float64 and model.dim in (2, 3) and library() is not None)
 
 
-def _index_conditions(model: Model) -> tuple:
-    """The conditions applied by node index (datagen.mpm.nodal.index_conditions): all of them in
-    eulerian mode or without wall planes, else the pinned ones (the planes act on moved nodes)."""
-    return model.conditions if model.reference == "eulerian" or model.wall_planes is None else model.pinned
-
-
 class _Compiled:
     """A model's tables in the layout of ``csrc/substeps.c`` (the tensors kept alive with it)."""
 
-    def __init__(self, model: Model, n_particles: int):
+    def __init__(self, model: Model, state: State):
+        n_particles = len(state.x)
         tables, dev = model.background, torch.device("cpu")
         keep = self.keep = []
 
@@ -176,7 +171,8 @@ class _Compiled:
             sel = slice(None) if ids is None else ids.cpu()
             mu[sel], lam[sel], kind[sel] = material.mu, material.lam, _MATERIALS[type(material)]
         plan.mu, plan.lam, plan.material = address(mu), address(lam), address(kind)
-        self.conditions = self._conditions(model, address, lambda t: address(node_id(t.cpu().to(torch.int64))))
+        self.conditions = self._conditions(model, index_conditions(model, state), address,
+                                           lambda t: address(node_id(t.cpu().to(torch.int64))))
         plan.conditions, plan.n_conditions = ctypes.addressof(self.conditions), len(self.conditions)
         self.colliders = (_Collider * max(1, len(model.colliders)))()
         for slot, collider in zip(self.colliders, model.colliders, strict=False):
@@ -186,11 +182,11 @@ class _Compiled:
         plan.colliders, plan.n_colliders = ctypes.addressof(self.colliders), len(model.colliders)
 
     @staticmethod
-    def _conditions(model: Model, address, node_ids):
-        """The conditions in the order :func:`~datagen.mpm.nodal.constrain` applies them; the
-        colliders (kind 4) after the walls and clamps and before the mirror ghosts. address(t,
+    def _conditions(model: Model, conditions: tuple, address, node_ids):
+        """The index ``conditions`` in the order :func:`~datagen.mpm.nodal.constrain` applies them;
+        the colliders (kind 4) after the walls and clamps and before the mirror ghosts. address(t,
         dtype): a kept tensor's address; node_ids(t): the address of node ids in the plan's numbering."""
-        order = list(_index_conditions(model))
+        order = list(conditions)
         if model.colliders:
             order = [c for c in order if not isinstance(c, Mirror)] + ["colliders"] + \
                     [c for c in order if isinstance(c, Mirror)]
@@ -241,10 +237,12 @@ def _relabel(rank: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
 _plans: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _compiled(model: Model, n_particles: int) -> _Compiled:
+def _compiled(model: Model, state: State) -> _Compiled:
+    """The model's plan for ``state``'s particles (built once per model; the reference modes build
+    theirs once a reference exists, so that the index conditions are the pinned ones)."""
     plan = _plans.get(model)
-    if plan is None or plan.plan.P != n_particles:
-        plan = _plans[model] = _Compiled(model, n_particles)
+    if plan is None or plan.plan.P != len(state.x):
+        plan = _plans[model] = _Compiled(model, state)
     return plan
 
 
@@ -271,7 +269,7 @@ def advance(model: Model, state: State, dt: float, steps: int) -> State:
     left = steps
     while left > 0:
         ref = state.reference
-        if model.reference != "eulerian" and (ref is None or ref.kernel is None or ref.stale or ref.operators is None):
+        if model.reference != "eulerian" and (ref is None or ref.kernel is None or ref.stale):
             state = step(model, state, dt)  # (re)builds the reference configuration
             left -= 1
             continue
@@ -286,7 +284,7 @@ def advance(model: Model, state: State, dt: float, steps: int) -> State:
 
 def _prepared(model: Model, state: State, dt: float, steps: int) -> _Compiled:
     """The model's plan, set for ``steps`` substeps from ``state`` (collider paths, masses, threads)."""
-    compiled_plan = _compiled(model, len(state.x))
+    compiled_plan = _compiled(model, state)
     plan = compiled_plan.plan
     compiled_plan.paths = _collider_paths(model, state.time, dt, steps)  # kept alive with the plan
     for slot, (centre, velocity) in zip(compiled_plan.colliders, compiled_plan.paths, strict=False):

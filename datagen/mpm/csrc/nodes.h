@@ -63,6 +63,16 @@ static inline __attribute__((always_inline)) double det3(int64_t d, const double
     return F[0] * (F[4] * F[8] - F[5] * F[7]) + F[1] * (F[5] * F[6] - F[3] * F[8]) + F[2] * (F[3] * F[7] - F[4] * F[6]);
 }
 
+/* The inverse of the d x d matrix a (row-major) by umls.c's adjugate inverse, as datagen.mpm.linalg.inv. */
+static inline void inverse_flat(int64_t d, const double *a, double *out) {
+    double q[3][3], o[3][3];
+    for (int r = 0; r < d; r++)
+        for (int c = 0; c < d; c++) q[r][c] = a[r * d + c];
+    inverse((int)d, q, o);
+    for (int r = 0; r < d; r++)
+        for (int c = 0; c < d; c++) out[r * d + c] = o[r][c];
+}
+
 /* R of the polar decomposition F = R S (datagen.mpm.materials.rotation_part). */
 static void rotation(int64_t d, const double *F, double *R) {
     if (d == 1) { R[0] = F[0] > 0 ? 1.0 : (F[0] < 0 ? -1.0 : 0.0); return; }
@@ -76,15 +86,11 @@ static void rotation(int64_t d, const double *F, double *R) {
     double A[9];
     memcpy(A, F, sizeof A);
     for (int it = 0; it < 12; it++) { /* R <- (g R + R^-T / g) / 2, g = |det R|^(-1/3) */
-        const double det = det3(3, A), g = pow(fabs(det), -1.0 / 3.0);
-        double invT[9];
-        for (int k = 0; k < 3; k++) { /* column k of the adjugate = row k of adj^T: rows k+1 x k+2 */
-            const double *a = A + 3 * ((k + 1) % 3), *b = A + 3 * ((k + 2) % 3);
-            invT[3 * k + 0] = (a[1] * b[2] - a[2] * b[1]) / det;
-            invT[3 * k + 1] = (a[2] * b[0] - a[0] * b[2]) / det;
-            invT[3 * k + 2] = (a[0] * b[1] - a[1] * b[0]) / det;
-        }
-        for (int k = 0; k < 9; k++) A[k] = 0.5 * (g * A[k] + invT[k] / g);
+        const double g = pow(fabs(det3(3, A)), -1.0 / 3.0);
+        double inv[9];
+        inverse_flat(3, A, inv);
+        for (int a = 0; a < 3; a++)
+            for (int b = 0; b < 3; b++) A[a * 3 + b] = 0.5 * (g * A[a * 3 + b] + inv[b * 3 + a] / g);
     }
     memcpy(R, A, sizeof A);
 }

@@ -56,25 +56,9 @@ static void apply_planes(const Plan *S, const Reference *R, const double *q, dou
     }
 }
 
-/* inverse of the d x d matrix a (row-major) by the adjugate, as datagen.mpm.linalg.inv */
-static inline void inverse_rm(int64_t d, const double *a, double *out) {
-    if (d == 2) {
-        const double det = a[0] * a[3] - a[1] * a[2];
-        out[0] = a[3] / det; out[1] = -a[1] / det; out[2] = -a[2] / det; out[3] = a[0] / det;
-        return;
-    }
-    const double det = det3(3, a);
-    for (int k = 0; k < 3; k++) { /* column k of the adjugate: row k+1 x row k+2 */
-        const double *r = a + 3 * ((k + 1) % 3), *t = a + 3 * ((k + 2) % 3);
-        out[0 * 3 + k] = (r[1] * t[2] - r[2] * t[1]) / det;
-        out[1 * 3 + k] = (r[2] * t[0] - r[0] * t[2]) / det;
-        out[2 * 3 + k] = (r[0] * t[1] - r[1] * t[0]) / det;
-    }
-}
-
 /* One reference-mode substep (datagen.mpm.reference.reference_step without a rebuild) from
- * x, v (P, d), F, Fsn, F0s (by component) and the moved nodes q (N, d) into W->xn, W->vn, Fn (P, d, d
- * row-major), Fsn_new (by component, in W->jac's neighbour buffer fsn). */
+ * x, v (P, d), F, Fsn, F0s (by component) and the moved nodes q (N, d) into W->xn, W->vn, W->Fn
+ * (P, d, d row-major) and fsn_new (by component). */
 static int reference_substep(const Plan *S, const Reference *R, Scratch *W, int64_t step, double dt, const double *x,
                              const double *v, const double *F, const double *Fsn, const double *F0s, const double *q,
                              double *fsn_new) {
@@ -88,7 +72,7 @@ static int reference_substep(const Plan *S, const Reference *R, Scratch *W, int6
             Sp[k] = Fsn[k * P + p];
         }
         force_coef(S, p, Fp, tau); /* -V^0 tau */
-        inverse_rm(d, Sp, Si);
+        inverse_flat(d, Sp, Si);
         for (int a = 0; a < d; a++)
             for (int b = 0; b < d; b++) {
                 double sum = 0.0;

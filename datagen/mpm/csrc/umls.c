@@ -14,7 +14,7 @@
 
 #define AHEAD 4  /* particles ahead whose cell tables are prefetched */
 
-/* Inverse of the symmetric d x d matrix q by the adjugate (as datagen.mpm.linalg.inv). */
+/* Inverse of the d x d matrix q by the adjugate (as datagen.mpm.linalg.inv). */
 static inline __attribute__((always_inline)) void inverse(int d, const double q[3][3], double out[3][3]) {
     if (d == 1) { out[0][0] = 1.0 / q[0][0]; return; }
     if (d == 2) {
