@@ -5,7 +5,9 @@ solution (L1 density error) and (b) a ``--reference``-cell run: the squared dens
 e_dm = sum (rho - rho_b)^2 / (sum rho_b)^2 (thesis eq. 3.38), rho_b the reference averaged onto
 the coarse cells; the convergence order per case from the two finest resolutions.
 2D: the central circular shock at ``--circular`` resolutions against a ``--circular-reference``
-run (e_dm, its order). Orders are the slopes between the two finest resolutions; e_dm's
+run (e_dm, its order), per velocity/pressure order of ``--schemes`` (B1B0, B2B1: the thesis'
+ablation; the reference is B1B0, as the thesis' is Kwatra's; the last line gives the first
+scheme's order). Orders are the slopes between the two finest resolutions; e_dm's
 normalisation by (sum rho_b)^2 and its square make its order about 2 x the L1 order + the
 dimension, so the L1 orders (against the exact solution in 1D, the reference run in 2D) are the
 ones comparable across cases; the last line gives those. Every run: the most CG iterations of
@@ -22,10 +24,11 @@ iterations per step, one thread.
 ``--pictures DIR`` also draws ``csmpm_sod.png`` (Sod at 128 and 512 cells over the exact
 solution), ``csmpm_circular_shock.png`` and ``csmpm_stair_flow.png`` (schlieren: exp(-k |grad
 rho| / max |grad rho|), Woodward and Colella's Mach 3 step at t = 0.5, 1, 2, 4, 60 cells per unit),
-and with the gas coupled to MPM solids ``csmpm_lifting_cylinder.png`` (200 cells per unit
-length), ``csmpm_shell_explosion.png`` (128^2) and ``csmpm_bullet.png`` (100 cells per unit
-length): schlieren of the gas, solid cells blue, the body's nodes orange over them
-(``--picture-sets gas coupled`` picks).
+``csmpm_b2b1.png`` (the circular shock's errors per scheme against resolution), and with the gas
+coupled to MPM solids ``csmpm_lifting_cylinder.png`` (400 cells per unit length, to t = 0.36),
+``csmpm_shell_explosion.png`` (128^2) and ``csmpm_bullet.png`` (100 cells per unit length):
+schlieren of the gas, solid cells blue, the body's nodes orange over them (``--picture-sets gas
+coupled`` picks).
 
 ``--coupling`` also runs the coupled solver's closed-box check (a 4x pressure jump hitting an
 elastic disk, 64^2 cells, 300 steps): gas mass drift, the largest per-step difference between
@@ -157,16 +160,20 @@ def coupled_pictures(folder: Path) -> None:
     import matplotlib.pyplot as plt
 
     folder.mkdir(parents=True, exist_ok=True)
-    cases = [("lifting_cylinder", {"cells": 200}, (3, 6, 10), [0, 1, 0, 0.2], (3, 1),
+    cases = [("lifting_cylinder", {"cells": 400}, {"frames": 12}, (4, 8, 12), [0, 1, 0, 0.2], (3, 1),
               "Mach 3 shock, cylinder on the floor"),
-             ("shell_explosion", {}, (1, 3, 6), [0, 1, 0, 1], (1, 3), "elastic ring, 10x pressure inside"),
-             ("bullet", {}, (2, 5, 10), [0, 3, 0, 1], (3, 1), "static barrel, 50x pressure behind the bullet")]
-    for name, params, frames, extent, layout, title in cases:
+             ("shell_explosion", {}, {}, (1, 3, 6), [0, 1, 0, 1], (1, 3), "elastic ring, 10x pressure inside"),
+             ("bullet", {}, {}, (2, 5, 10), [0, 3, 0, 1], (3, 1), "static barrel, 50x pressure behind the bullet")]
+    for name, params, output, frames, extent, layout, title in cases:
         start = time.perf_counter()
-        t = datagen.simulate({"scene": name, "params": params})
+        t = datagen.simulate({"scene": name, "params": params, "output": output})
         dx = 1.0 / t.config["params"]["cells"]
         print(f"{name}: {t.substeps} steps, {time.perf_counter() - start:.0f} s, CG iterations max "
               f"{int(t.diagnostics['cg_iterations'].max())}, floored cell-steps {int(t.diagnostics['floored'].sum())}")
+        shown = list(frames)
+        centres = zip(t.times[shown], t.diagnostics["centre"][shown], strict=True)
+        print(f"{name}: the body's centre " + ", ".join(f"({x:.3f}, {y:.3f}) at t = {when:.2f}"
+                                                         for when, (x, y) in centres))
         size = (10, 6.5) if layout == (3, 1) else (12, 4.2)
         fig, ax = plt.subplots(*layout, figsize=size)
         for a, k in zip(np.ravel(ax), frames, strict=True):
@@ -263,12 +270,65 @@ def outlets(n: int = 200) -> None:
         print(f"{label:<22}{reflected:>11.4f}{relaxed:>15.5f}")
 
 
+def _circular_run(cells: int, scheme: str):
+    start = time.perf_counter()
+    t = datagen.simulate({"scene": "circular_shock", "params": {"cells": cells}, "solver": {"scheme": scheme}})
+    return t, t.fields["density"][-1].reshape(cells, cells), time.perf_counter() - start
+
+
+def circular(resolutions: list[int], n_ref: int, schemes: list[str], folder: Path | None) -> tuple[dict, int]:
+    """The circular shock at ``resolutions`` per scheme against one B1B0 run at ``n_ref``^2 (the
+    thesis' ablation, Fig. 3.5 right); with ``folder`` also ``csmpm_b2b1.png``. -> (per scheme its
+    L1 order, the most CG iterations of any run)."""
+    reference, rho_ref, _ = _circular_run(n_ref, "B1B0")
+    cg_max = int(reference.diagnostics["cg_iterations"].max())
+    orders, curves = {}, {}
+    for scheme in schemes:
+        dm, ref = [], []
+        for cells in resolutions:
+            t, rho, seconds = _circular_run(cells, scheme)
+            dm.append(e_dm(rho, rho_ref))
+            ref.append(l1_reference(rho, rho_ref))
+            k = int(t.diagnostics["cg_iterations"].max())
+            cg_max = max(cg_max, k)
+            print(f"{'circular ' + scheme:<16}{cells:>7}{'-':>12}{ref[-1]:>12.3e}{dm[-1]:>12.3e}{k:>8}{t.substeps:>8}"
+                  f"{seconds:>8.1f}")
+        orders[scheme], curves[scheme] = _order(ref, resolutions), (ref, dm)
+        print(f"circular_shock {scheme}: order {orders[scheme]:.2f} (L1 against {n_ref}^2 cells of B1B0), "
+              f"{_order(dm, resolutions):.2f} (e_dm)")
+    if folder is not None:
+        _ablation_picture(folder, resolutions, n_ref, curves)
+    return orders, cg_max
+
+
+def _ablation_picture(folder: Path, resolutions: list[int], n_ref: int, curves: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(1, 2, figsize=(8, 3.2))
+    for scheme, (ref, dm) in curves.items():
+        for a, values in zip(ax, (ref, dm), strict=True):
+            a.loglog(resolutions, values, "o-", label=scheme)
+    for a, title in zip(ax, ("L1 density error", "e_dm (thesis eq. 3.38)"), strict=True):
+        a.set_xlabel("cells per side")
+        a.set_title(f"circular shock: {title}\nagainst a {n_ref}$^2$ B1B0 run", fontsize=9)
+        a.legend()
+    fig.tight_layout()
+    fig.savefig(folder / "csmpm_b2b1.png", dpi=100)
+    plt.close(fig)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cells", type=int, nargs="+", default=[128, 256, 512, 1024, 2048])
     parser.add_argument("--reference", type=int, default=4096)
     parser.add_argument("--circular", type=int, nargs="+", default=[64, 128, 256])
     parser.add_argument("--circular-reference", type=int, default=512)
+    parser.add_argument("--schemes", nargs="+", choices=["B1B0", "B2B1"], default=["B1B0", "B2B1"],
+                        help="the circular shock's velocity/pressure orders (the last line: the first)")
     parser.add_argument("--pictures", type=Path, default=None, help="folder for the pictures (none: no pictures)")
     parser.add_argument("--picture-sets", nargs="+", choices=["gas", "coupled"], default=["gas", "coupled"])
     parser.add_argument("--coupling", action="store_true", help="run the coupled solver's closed-box check")
@@ -310,25 +370,9 @@ def main(argv=None) -> None:
         print(f"{name}: order {_order(l1, args.cells):.2f} (L1 against the exact solution), "
               f"{_order(ref, args.cells):.2f} (L1 against {args.reference} cells), "
               f"{_order(dm, args.cells):.2f} (e_dm against {args.reference} cells)")
-    reference = datagen.simulate({"scene": "circular_shock", "params": {"cells": args.circular_reference}})
-    cg_max = max(cg_max, int(reference.diagnostics["cg_iterations"].max()))
-    n_ref = args.circular_reference
-    rho_ref = reference.fields["density"][-1].reshape(n_ref, n_ref)
-    dm, ref = [], []
-    for cells in args.circular:
-        start = time.perf_counter()
-        t = datagen.simulate({"scene": "circular_shock", "params": {"cells": cells}})
-        seconds = time.perf_counter() - start
-        rho = t.fields["density"][-1].reshape(cells, cells)
-        dm.append(e_dm(rho, rho_ref))
-        ref.append(l1_reference(rho, rho_ref))
-        k = int(t.diagnostics["cg_iterations"].max())
-        cg_max = max(cg_max, k)
-        print(f"{'circular_shock':<16}{cells:>7}{'-':>12}{ref[-1]:>12.3e}{dm[-1]:>12.3e}{k:>8}{t.substeps:>8}"
-              f"{seconds:>8.1f}")
-    circular_order = _order(ref, args.circular)
-    print(f"circular_shock: order {circular_order:.2f} (L1 against {n_ref}^2 cells), {_order(dm, args.circular):.2f} "
-          f"(e_dm against {n_ref}^2 cells)")
+    orders, k = circular(args.circular, args.circular_reference, args.schemes, args.pictures)
+    cg_max = max(cg_max, k)
+    circular_order = orders[args.schemes[0]]
     l1 = summary["sod"][0]
     print(f"csmpm: sod L1 density error {l1[-1]:.3g} at {args.cells[-1]} cells (order {_order(l1, args.cells):.2f}), "
           f"circular shock order {circular_order:.2f}, CG iterations max {cg_max}")

@@ -35,13 +35,13 @@ A step follows the thesis' Algorithm 3.1 in its order:
 7. **G2P**: velocities and APIC affine matrices, F <- (I + dt C) F (then the material's return
    map), J^g <- J^g (1 + dt tr C) (eq. 3.20), positions.
 
-Why faces and not the thesis' B2B1: with the gas's velocities on faces (the B1B0 layout of
-:mod:`~datagen.csmpm.euler`), putting the solid's velocity on the same faces gives both phases one
-velocity per face and one pressure per cell, so the coupled system is the gas's system with
-other coefficients and no interface unknowns (the h and Y blocks of eq. 3.34 vanish), and the
-solid's update is the exact transpose of the divergence the solve used (eq. 3.36, the stable
-choice of the thesis' Fig. 3.3). Quadratic B-splines keep the solid's velocity field C^1 for
-the elastic forces.
+Why faces and not the thesis' B2B1 (which the gas alone takes: :mod:`~datagen.csmpm.b2b1`): with
+the gas's velocities on faces (the B1B0 layout of :mod:`~datagen.csmpm.euler`), putting the
+solid's velocity on the same faces gives both phases one velocity per face and one pressure per
+cell, so the coupled system is the gas's system with other coefficients and no interface
+unknowns (the h and Y blocks of eq. 3.34 vanish), and the solid's update is the exact transpose
+of the divergence the solve used (eq. 3.36, the stable choice of the thesis' Fig. 3.3).
+Quadratic B-splines keep the solid's velocity field C^1 for the elastic forces.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 from ..config import ConfigError
-from . import euler, gas
+from . import b2b1, euler, gas
 
 __all__ = ["frames", "gas_frames"]
 
@@ -29,15 +29,17 @@ def frames(output: dict, max_substeps: int, step):
 
 
 def gas_frames(scene: str, grid, state, gamma: float, solver: dict, output: dict):
-    """A gas scene's run (:mod:`datagen.csmpm.euler` on ``grid`` from ``state``): (states per frame,
+    """A gas scene's run (:mod:`datagen.csmpm.euler`, or :mod:`~datagen.csmpm.b2b1` where
+    ``solver['scheme']`` says so, on ``grid`` from ``state``): (states per frame,
     their times, wall seconds per frame, the most CG iterations per frame, total steps); frame 0
     is the start. RuntimeError naming ``scene`` if the gas leaves the physical states."""
     states, times, wall, iterations, substeps = [state], [0.0], [0.0], [0], 0
     run = {"state": state}
+    advance_one = b2b1.step if solver.get("scheme", "B1B0") == "B2B1" else euler.step
 
     def advance(t: float, remaining: float):
         dt = min(euler.time_step(run["state"], grid, solver["cfl"], solver["acoustic"], gamma), remaining)
-        run["state"], info = euler.step(run["state"], grid, dt, gamma)
+        run["state"], info = advance_one(run["state"], grid, dt, gamma)
         if not gas.physical(run["state"], gamma):
             raise RuntimeError(f"{scene}: the gas state became non-physical (density or pressure <= 0) at "
                                f"t = {t + dt:.6g} s; lower solver.cfl")

@@ -10,7 +10,9 @@ allows, each step then capped by the frame interval). The Trajectory's ``fields`
 (N,) cell centres and ``density``, ``velocity``, ``pressure`` (frames + 1, N); its positions
 are the cell centres (a fixed 1D mesh), its velocities the gas velocity; diagnostics per frame:
 ``mass``, ``momentum``, ``energy`` (per unit cross-section) and ``cg_iterations`` (the most of
-any step reaching the frame).
+any step reaching the frame). ``solver.scheme``: the pressure projection's velocity/pressure
+order, ``B1B0`` (:mod:`~datagen.csmpm.euler`, the default) or ``B2B1``
+(:mod:`~datagen.csmpm.b2b1`: closed boxes only, so ``circular_shock`` and a walled tube).
 
 ``circular_shock`` (Kwatra et al. 2009's central circular shock): a square box of side
 ``length`` with ``cells`` cells per side and walls all round; gas ``inside`` = [rho, p] within
@@ -35,7 +37,7 @@ import numpy as np
 from ..config import ConfigError, reject_unknown, section
 from ..mesh import Mesh
 from ..trajectory import NodeType, Trajectory
-from . import euler, gas
+from . import b2b1, euler, gas
 from .coupled_scenes import COUPLED_DEFAULTS, COUPLED_OUTPUT, check
 from .coupled_scenes import simulate as simulate_coupled
 from .flow import FLOW_DEFAULTS, FLOW_OUTPUT, cell_mesh
@@ -56,7 +58,7 @@ DEFAULTS = {
     "stair_flow": {"inflow": [1.4, 3.0, 1.0], "size": [3.0, 1.0], "step": [0.6, 0.2], "cells": 40, "gamma": gas.GAMMA},
     **FLOW_DEFAULTS, **COUPLED_DEFAULTS,
 }
-SOLVER = {"cfl": 0.5, "acoustic": 1.0, "max_substeps": 100_000, "threads": 0}
+SOLVER = {"cfl": 0.5, "acoustic": 1.0, "max_substeps": 100_000, "threads": 0, "scheme": "B1B0"}
 # threads: accepted like the MPM scenes' solver.threads (evaluations set it for every solver run);
 # the gas solver is numpy and scipy on one thread whatever it says
 OUTPUT = {"shock_tube": {"frames": 20, "frame_interval": 0.01},
@@ -125,6 +127,17 @@ def _params(name: str, p: dict) -> dict:
     return p
 
 
+def _scheme(name: str, p: dict, scheme) -> None:
+    """ConfigError unless ``scheme`` is one of :data:`datagen.csmpm.b2b1.SCHEMES` that ``name`` runs
+    (B2B1: the gas alone in a closed box)."""
+    if scheme not in b2b1.SCHEMES:
+        raise ConfigError(f"config key 'solver.scheme' must be one of {', '.join(b2b1.SCHEMES)}, got {scheme!r}")
+    closed = name == "circular_shock" or (name == "shock_tube" and p["boundaries"] == "wall")
+    if scheme == "B2B1" and not closed:
+        raise ConfigError(f"config key 'solver.scheme' B2B1 takes the gas alone in a closed box (circular_shock, or "
+                          f"shock_tube with params.boundaries wall), not scene {name!r} as configured; use B1B0")
+
+
 def resolve(config: dict) -> dict:
     """The full config of a gas scene (defaults filled in, every value checked)."""
     reject_unknown(config, {"scene", "params", "solver", "output", "seed", "field_spec"})  # the spec: written, not read
@@ -141,6 +154,7 @@ def resolve(config: dict) -> dict:
     s["max_substeps"] = _number(s["max_substeps"], "solver.max_substeps", low=0, integer=True)
     if isinstance(s["threads"], bool) or not isinstance(s["threads"], int) or s["threads"] < 0:
         raise ConfigError(f"config key 'solver.threads' must be an integer >= 0, got {s['threads']!r}")
+    _scheme(name, p, s["scheme"])
     o["frames"] = _number(o["frames"], "output.frames", low=0, integer=True)
     o["frame_interval"] = float(_number(o["frame_interval"], "output.frame_interval", low=0))
     seed = config.get("seed", 0)
