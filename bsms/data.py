@@ -23,7 +23,7 @@ from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, ty
 from bsms.graph import bistride_levels
 from bsms.graph.frames import SubHierarchy
 from bsms.graph.obstacles import ObstacleReach, Subdivision, facet_edges, subdivide_obstacles
-from bsms.graph.penetration import Penetration
+from bsms.graph.penetration import Clearance, Penetration
 from bsms.level_graph import FrameArrays, LevelGraph, level_graph
 from bsms.options import GraphOptions, NoiseOptions, saved_graph_options
 from datagen.dataset import DatasetError
@@ -85,12 +85,13 @@ def _with_obstacles(rest, edges, node_type, body_id, obstacle_nodes, obstacle_fa
             np.concatenate([body_id, np.full(m, body_id.max() + 1, np.int64)]), geometry)
 
 
-def _penetration(options: GraphOptions, rest, geometry: Subdivision | None, n_body: int, source: str):
-    """The scenario's :class:`Penetration` (``graph.penetration``), None without obstacle geometry."""
-    if not options.penetration or geometry is None:
+def _obstacle_input(kind, wanted: bool, rest, geometry: Subdivision | None, n_body: int, source: str, *args):
+    """The scenario's ``kind`` (:class:`Penetration` for ``graph.penetration``, :class:`Clearance`
+    for ``graph.clearance``) where ``wanted``; None without obstacle geometry."""
+    if not wanted or geometry is None:
         return None
     try:
-        return Penetration(rest, geometry.facets + n_body, n_body)
+        return kind(rest, geometry.facets + n_body, n_body, *args)
     except ValueError as exc:
         raise ConfigError(f"{source}: {exc}") from None
 
@@ -129,6 +130,7 @@ class Scenario:
     type_codes: np.ndarray | None = None
     obstacle_geometry: Subdivision | None = field(default=None, repr=False)
     penetration: Penetration | None = field(default=None, repr=False)
+    clearance: Clearance | None = field(default=None, repr=False)
     loss_weight: float | None = field(default=None, repr=False)
 
     @classmethod
@@ -154,13 +156,16 @@ class Scenario:
         radius = options.contact_radius * edge_length if options.contact_distance is None else \
             options.contact_distance
         reach = None if options.obstacle_margin is None else radius + options.obstacle_margin * edge_length
+        clearance = _obstacle_input(Clearance, options.clearance, rest, geometry, n_body, source, radius)
         return cls(
             rest_pos=rest, node_type=node_type, body_id=body_id, edges=edges, cells=mesh.cells, n_body=n_body,
             hierarchy=hierarchy, constants=constants, frame_dt=float(frame_dt), contact_radius=radius,
             options=options, levels=SubHierarchy(hierarchy, n_body),
-            reach=ObstacleReach(n_body, body_id, radius, reach, options.self_contact, edges),
+            reach=ObstacleReach(n_body, body_id, radius, reach, options.self_contact, edges,
+                                excluded=None if clearance is None else clearance.excluded),
             type_codes=None if type_codes is None else np.asarray(type_codes, np.int64), obstacle_geometry=geometry,
-            penetration=_penetration(options, rest, geometry, n_body, source),
+            penetration=_obstacle_input(Penetration, options.penetration, rest, geometry, n_body, source),
+            clearance=clearance,
         )
 
     @classmethod
@@ -243,6 +248,9 @@ class Scenario:
             coming = pos + self.frame_dt * np.asarray(velocity, np.float64)  # kinematic rows: their coming step
             arrays["penetration"] = self.penetration(pos, coming, self.node_type == NodeType.FREE)[nodes] \
                 if self.penetration is not None else np.zeros((len(nodes), pos.shape[1]))
+        if self.options.clearance:
+            arrays["clearance"] = self.clearance(np.asarray(pos, np.float64), self.node_type == NodeType.FREE)[nodes] \
+                if self.clearance is not None else np.zeros((len(nodes), np.shape(pos)[1]))
         return FrameArrays(arrays, levels, contacts if self.options.contact else None)
 
     def graph(self, pos: np.ndarray, velocity: np.ndarray, target: np.ndarray | None = None,

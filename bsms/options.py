@@ -71,6 +71,12 @@ class GraphOptions:
         outline's nearest point, else 0 (:mod:`bsms.graph.penetration`) -- the kinematic
         boundary condition an indenter imposes, which the network would otherwise have to
         infer from offsets to the obstacle's surface nodes. 2D (segment outlines) and 3D (triangles).
+    clearance: the container (the walls around the body, which stand still) leaves every graph:
+        no nodes of its own, no contact edges to them; each node gets instead, as an input, the
+        vector from it to the container's nearest point where that is within the contact radius,
+        else 0 (:class:`bsms.graph.penetration.Clearance`). What a floor's contact edges told the
+        network (where the wall is) it gets per node, and a frame's graph keeps only the body and
+        the moving obstacles: a bonded body's floor contacts were most of its level-0 edges.
     """
 
     levels: int = 4
@@ -88,6 +94,7 @@ class GraphOptions:
     displacement: bool = False
     from_rest: bool = False
     penetration: bool = False
+    clearance: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
         if self.displacement and not self.quasi_static:
@@ -96,6 +103,9 @@ class GraphOptions:
         if self.from_rest and self.quasi_static:
             raise ConfigError(f"config key '{prefix}.from_rest' predicts every frame from the rest shape and the "
                               f"drive, '{prefix}.quasi_static' steps from the frame before; set one of them to false")
+        if self.clearance and not self.obstacles:
+            raise ConfigError(f"config key '{prefix}.clearance' stands in for the container's obstacle nodes; set "
+                              f"'{prefix}.obstacles: true' too, or '{prefix}.clearance: false'")
         if not 1 <= self.levels <= 16:
             raise ConfigError(f"config key '{prefix}.levels' must be from 1 to 16 (the mesh included), "
                               f"got {self.levels}")

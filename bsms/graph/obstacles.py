@@ -139,15 +139,18 @@ class ObstacleReach:
     body_id: (N,) body of each node (obstacles: one id of their own); contact_radius: contact
     distance; reach: obstacle nodes within this distance of a body node enter the frame
     (>= contact_radius), or None: every obstacle node, every frame; self_contact, edges
-    ((E, 2) mesh and facet edges): as :func:`~bsms.graph.contact.contact_edges`.
+    ((E, 2) mesh and facet edges): as :func:`~bsms.graph.contact.contact_edges`; excluded:
+    scenario indices of obstacle nodes no frame holds and no contact reaches (``graph.clearance``:
+    the container's), or None.
     """
 
     def __init__(self, n_body: int, body_id: np.ndarray, contact_radius: float, reach: float | None,
-                 self_contact: bool = False, edges: np.ndarray | None = None):
+                 self_contact: bool = False, edges: np.ndarray | None = None, excluded: np.ndarray | None = None):
         if reach is not None and reach < contact_radius:
             raise ValueError(f"reach ({reach}) must be at least the contact radius ({contact_radius})")
         self.n_body, self.body_id, self.radius, self.reach = int(n_body), np.asarray(body_id), contact_radius, reach
         self.self_contact, self.edges = self_contact, edges
+        self.excluded = np.zeros(0, np.int64) if excluded is None else np.asarray(excluded, np.int64)
         self.several_bodies = len(np.unique(self.body_id[: self.n_body])) > 1
         self._obstacles: tuple[np.ndarray, cKDTree] | None = None
 
@@ -163,17 +166,19 @@ class ObstacleReach:
         sorted by (row, col) -- between different bodies and between bodies and obstacles
         (with self_contact, every pair :func:`contact_edges` finds, to be cut to the frame's nodes)."""
         n = len(pos)
-        body_obstacle, chosen = np.zeros((2, 0), np.int64), np.arange(self.n_body, n)
-        if n > self.n_body and (self.reach is not None or not self.self_contact):
+        obstacles = np.setdiff1d(np.arange(self.n_body, n), self.excluded, assume_unique=True)
+        body_obstacle, chosen = np.zeros((2, 0), np.int64), obstacles
+        if len(obstacles) and (self.reach is not None or not self.self_contact):
             near = cKDTree(pos[: self.n_body]).sparse_distance_matrix(
-                self._obstacle_tree(pos[self.n_body:]), self.radius if self.reach is None else self.reach,
+                self._obstacle_tree(pos[obstacles]), self.radius if self.reach is None else self.reach,
                 output_type="ndarray")
             touching = near[near["v"] <= self.radius]
-            body_obstacle = np.stack([touching["i"], touching["j"] + self.n_body]).astype(np.int64)
+            body_obstacle = np.stack([touching["i"], obstacles[touching["j"]]]).astype(np.int64)
             if self.reach is not None:
-                chosen = np.unique(near["j"]).astype(np.int64) + self.n_body
+                chosen = obstacles[np.unique(near["j"])]
         if self.self_contact:
-            return chosen, contact_edges(pos, self.body_id, self.radius, exclude=self.edges, self_contact=True)
+            pairs = contact_edges(pos, self.body_id, self.radius, exclude=self.edges, self_contact=True)
+            return chosen, pairs[:, ~np.isin(pairs, self.excluded).any(axis=0)]
         pairs = [body_obstacle]
         if self.several_bodies:
             pairs.append(contact_edges(pos[: self.n_body], self.body_id[: self.n_body], self.radius,

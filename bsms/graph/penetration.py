@@ -19,8 +19,10 @@ from __future__ import annotations
 import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
-__all__ = ["Penetration", "winding_numbers", "closest_points", "solid_winding_numbers", "closest_points_3d"]
+__all__ = ["Penetration", "Clearance", "outlines", "winding_numbers", "closest_points", "solid_winding_numbers",
+           "closest_points_3d"]
 
 
 def winding_numbers(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -90,6 +92,33 @@ def _closest(points, corners):
     return closest_points(points, *corners) if len(corners) == 2 else closest_points_3d(points, *corners)
 
 
+def outlines(rest: np.ndarray, facets: np.ndarray, n_body: int,
+             what: str = "graph.penetration") -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The closed obstacle outlines of ``facets`` (F, d) (segments in 2D, triangles in 3D, in
+    scenario node indices; ``rest`` (N, d) of all scenario nodes, the first ``n_body`` the body's):
+    (obstacles, containers), each a list of the facets of one connected component; a component
+    is a container when it encloses most of the body's rest nodes (the walls around the body).
+    ValueError naming ``what`` (the option that asked) where the facets do not fit the dimension."""
+    dim = rest.shape[1]
+    facets = np.asarray(facets, np.int64).reshape(len(facets), -1)
+    if dim not in (2, 3) or (len(facets) and facets.shape[1] != dim):
+        raise ValueError(f"{what} needs closed obstacle outlines of {dim}-node facets in a {dim}D scene (segments "
+                         f"in 2D, triangles in 3D), got facets of {facets.shape[1]} nodes")
+    obstacles, containers = [], []
+    if len(facets) == 0:
+        return obstacles, containers
+    n = len(rest)
+    pairs = np.concatenate([facets[:, [i, (i + 1) % dim]] for i in range(dim)])
+    graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    body = rest[:n_body][:: max(1, n_body // 256)]  # enough of them to tell a container
+    for label in np.unique(labels[facets[:, 0]]):
+        outline = facets[labels[facets[:, 0]] == label]
+        inside = np.abs(_winding(body, [rest[outline[:, i]] for i in range(dim)])) > 0.5
+        (containers if inside.mean() > 0.5 else obstacles).append(outline)
+    return obstacles, containers
+
+
 class Penetration:
     """The penetration input of one scenario.
 
@@ -98,24 +127,7 @@ class Penetration:
     body's)."""
 
     def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int):
-        dim = rest.shape[1]
-        facets = np.asarray(facets, np.int64).reshape(len(facets), -1)
-        if dim not in (2, 3) or (len(facets) and facets.shape[1] != dim):
-            raise ValueError(f"graph.penetration needs closed obstacle outlines of {dim}-node facets in a "
-                             f"{dim}D scene (segments in 2D, triangles in 3D), got facets of {facets.shape[1]} nodes")
-        n = len(rest)
-        self.outlines: list[np.ndarray] = []
-        if len(facets) == 0:
-            return
-        pairs = np.concatenate([facets[:, [i, (i + 1) % dim]] for i in range(dim)])
-        graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-        _, labels = connected_components(graph, directed=False)
-        body = rest[:n_body][:: max(1, n_body // 256)]  # enough of them to tell a container
-        for label in np.unique(labels[facets[:, 0]]):
-            outline = facets[labels[facets[:, 0]] == label]
-            inside = np.abs(_winding(body, [rest[outline[:, i]] for i in range(dim)])) > 0.5
-            if inside.mean() <= 0.5:  # not a container
-                self.outlines.append(outline)
+        self.outlines, _ = outlines(rest, facets, n_body)
 
     def __call__(self, pos: np.ndarray, coming: np.ndarray, free: np.ndarray) -> np.ndarray:
         """(N, d): for free nodes at ``pos`` inside an obstacle outline placed at ``coming`` (N, d:
@@ -130,4 +142,48 @@ class Penetration:
             inside = near[np.abs(_winding(pos[near], corners)) > 0.5]
             if len(inside):
                 out[inside] += _closest(pos[inside], corners) - pos[inside]
+        return out
+
+
+class Clearance:
+    """The clearance input of one scenario (``graph.clearance``): where the container's walls are,
+    per node, in place of the container's nodes and contact edges.
+
+    rest: (N, d) rest positions of all scenario nodes; facets: (F, d) obstacle facets in scenario
+    node indices; n_body: body node count; radius: the contact radius. ``excluded``: the scenario
+    nodes of the container (the obstacle nodes a frame's graph leaves out)."""
+
+    def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int, radius: float):
+        _, containers = outlines(rest, facets, n_body, "graph.clearance")
+        self.radius = float(radius)
+        self.facets = np.concatenate(containers) if containers else np.zeros((0, rest.shape[1]), np.int64)
+        self.excluded = np.unique(self.facets)
+        self.corners = [rest[self.facets[:, i]] for i in range(self.facets.shape[1])]  # the container stands still
+        self._tree = cKDTree(rest[self.excluded]) if len(self.excluded) else None
+        self._spacing = max((np.linalg.norm(c - self.corners[0], axis=1).max() for c in self.corners[1:]),
+                            default=0.0)
+        self._middles = sum(self.corners) / len(self.corners) if len(self.facets) else np.zeros((0, rest.shape[1]))
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (pos, free, out) of the last call
+
+    def __call__(self, pos: np.ndarray, free: np.ndarray) -> np.ndarray:
+        """(N, d): for free nodes at ``pos`` within the contact radius of the container, the vector
+        to its nearest point; 0 elsewhere. The last answer is kept: frames from rest
+        (``graph.from_rest``) ask the same every time."""
+        if self._last is not None and np.array_equal(self._last[0], pos) and np.array_equal(self._last[1], free):
+            return self._last[2].copy()
+        out = np.zeros_like(pos, dtype=np.float64)
+        if self._tree is None:
+            return out
+        points = np.flatnonzero(free)
+        # a point within the radius of a facet is within radius + the facet's size of one of its corners
+        distance, _ = self._tree.query(pos[points], distance_upper_bound=self.radius + self._spacing)
+        near = points[np.isfinite(distance)]
+        if len(near):
+            # only the facets within reach of these nodes: midpoint within radius + size of one
+            reach, _ = cKDTree(pos[near]).query(self._middles, distance_upper_bound=self.radius + self._spacing)
+            facets = np.isfinite(reach)
+            offset = _closest(pos[near], [c[facets] for c in self.corners]) - pos[near]
+            close = np.linalg.norm(offset, axis=1) <= self.radius
+            out[near[close]] = offset[close]
+        self._last = (np.array(pos, copy=True), np.array(free, copy=True), out.copy())
         return out
