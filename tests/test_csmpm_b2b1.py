@@ -74,36 +74,13 @@ def test_the_pressure_system_is_symmetric_and_definite_and_its_kernel_never_reac
         assert abs(np.sum(ops.gradient(p, a) * u) - np.sum(p * ops.gradient_transpose(u, a))) <= 1e-15
 
 
-def _run(state, grid, t_end, cfl=0.5):
-    t, iterations = 0.0, []
-    while t < t_end - 1e-12:
-        dt = min(euler.time_step(state, grid, cfl, 1.0), t_end - t)
-        state, info = b2b1.step(state, grid, dt)
-        t += dt
-        iterations.append(info.cg_iterations)
-    return state, iterations
-
-
-def test_a_gas_at_rest_stays_at_rest_and_a_closed_blast_keeps_mass_energy_and_symmetry():
+def test_a_gas_at_rest_in_a_closed_box_stays_at_rest():  # a blast in one: tests/test_csmpm_gas.py
     grid = _walls((12, 9))
     still = gas.conserved(np.full(grid.shape, 0.7), np.zeros((2, *grid.shape)), np.full(grid.shape, 2.0))
-    after, _ = _run(still, grid, 0.05)
+    after = still
+    for _ in range(10):
+        after, _ = b2b1.step(after, grid, 0.005)
     assert np.abs(after - still).max() <= 1e-14
-    n = 48
-    dx = 2.0 / n
-    c = (np.arange(n) + 0.5) * dx - 1.0
-    x, y = np.meshgrid(c, c, indexing="ij")
-    inside = x ** 2 + y ** 2 < 0.4 ** 2
-    state = gas.conserved(np.where(inside, 1.0, 0.125), np.zeros((2, n, n)), np.where(inside, 1.0, 0.1))
-    after, iterations = _run(state, _walls((n, n), dx), 0.5)  # the shock reflects off the walls
-    mass, energy = state[0].sum(), state[-1].sum()
-    assert abs(after[0].sum() - mass) <= 1e-14 * mass and abs(after[-1].sum() - energy) <= 1e-14 * energy
-    assert np.abs(after[1:3].sum(axis=(1, 2))).max() <= 1e-12, "the walls push alike from both sides"
-    rho = after[0]
-    for image in (rho[::-1], rho[:, ::-1], rho.T):
-        assert np.abs(image - rho).max() <= 1e-13
-    assert np.abs(after[1] + after[1][::-1]).max() <= 1e-13 and np.abs(after[1] - after[2].T).max() <= 1e-13
-    assert max(iterations) <= 10  # measured 8 (B1B0: 16)
 
 
 def test_b2b1_sod_in_a_closed_tube_converges_toward_the_exact_solution_next_to_b1b0():
