@@ -80,7 +80,7 @@ def test_a_gas_at_rest_in_a_closed_box_stays_at_rest():  # a blast in one: tests
     after = still
     for _ in range(10):
         after, _ = b2b1.step(after, grid, 0.005)
-    assert np.abs(after - still).max() <= 1e-14
+    assert np.abs(after - still).max() <= 1e-15  # measured 1.4e-16
 
 
 def test_b2b1_sod_in_a_closed_tube_converges_toward_the_exact_solution_next_to_b1b0():
