@@ -55,7 +55,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 import datagen  # noqa: E402
-from datagen.csmpm import euler, gas  # noqa: E402
+from datagen.csmpm import b2b1, euler, gas  # noqa: E402
 
 TUBES = {  # name: (left, right, end time) on [0, 1], interface 0.5
     "sod": ([1.0, 0.0, 1.0], [0.125, 0.0, 0.1], 0.2),
@@ -327,7 +327,7 @@ def main(argv=None) -> None:
     parser.add_argument("--reference", type=int, default=4096)
     parser.add_argument("--circular", type=int, nargs="+", default=[64, 128, 256])
     parser.add_argument("--circular-reference", type=int, default=512)
-    parser.add_argument("--schemes", nargs="+", choices=["B1B0", "B2B1"], default=["B1B0", "B2B1"],
+    parser.add_argument("--schemes", nargs="+", choices=b2b1.SCHEMES, default=list(b2b1.SCHEMES),
                         help="the circular shock's velocity/pressure orders (the last line: the first)")
     parser.add_argument("--pictures", type=Path, default=None, help="folder for the pictures (none: no pictures)")
     parser.add_argument("--picture-sets", nargs="+", choices=["gas", "coupled"], default=["gas", "coupled"])

@@ -71,12 +71,12 @@ class GraphOptions:
         outline's nearest point, else 0 (:mod:`bsms.graph.penetration`) -- the kinematic
         boundary condition an indenter imposes, which the network would otherwise have to
         infer from offsets to the obstacle's surface nodes. 2D (segment outlines) and 3D (triangles).
-    clearance: the container (the walls around the body, which stand still) leaves every graph:
+    clearance: the container (the walls around the body) leaves every graph:
         no nodes of its own, no contact edges to them; each node gets instead, as an input, the
         vector from it to the container's nearest point where that is within the contact radius,
         else 0 (:class:`bsms.graph.penetration.Clearance`). What a floor's contact edges told the
         network (where the wall is) it gets per node, and a frame's graph keeps only the body and
-        the moving obstacles: a bonded body's floor contacts were most of its level-0 edges.
+        the other obstacles (on a press test frame the floor's contacts were a third of level 0's edges).
     """
 
     levels: int = 4

@@ -158,32 +158,36 @@ class Clearance:
         self.radius = float(radius)
         self.facets = np.concatenate(containers) if containers else np.zeros((0, rest.shape[1]), np.int64)
         self.excluded = np.unique(self.facets)
-        self.corners = [rest[self.facets[:, i]] for i in range(self.facets.shape[1])]  # the container stands still
-        self._tree = cKDTree(rest[self.excluded]) if len(self.excluded) else None
-        self._spacing = max((np.linalg.norm(c - self.corners[0], axis=1).max() for c in self.corners[1:]),
-                            default=0.0)
-        self._middles = sum(self.corners) / len(self.corners) if len(self.facets) else np.zeros((0, rest.shape[1]))
+        self._walls: tuple[np.ndarray, cKDTree] | None = None  # the container's nodes and their tree
         self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (pos, free, out) of the last call
 
+    def _tree(self, pos: np.ndarray) -> cKDTree:
+        """A KD-tree of the container's nodes at ``pos``, rebuilt only when they move."""
+        walls = pos[self.excluded]
+        if self._walls is None or not np.array_equal(self._walls[0], walls):
+            self._walls = (walls.copy(), cKDTree(walls))
+        return self._walls[1]
+
     def __call__(self, pos: np.ndarray, free: np.ndarray) -> np.ndarray:
-        """(N, d): for free nodes at ``pos`` within the contact radius of the container, the vector
-        to its nearest point; 0 elsewhere. The last answer is kept: frames from rest
-        (``graph.from_rest``) ask the same every time."""
+        """(N, d): for free nodes at ``pos`` (all scenario nodes, the container's included) within
+        the contact radius of the container, the vector to its nearest point; 0 elsewhere. The
+        last answer is kept: frames from rest (``graph.from_rest``) ask the same every time."""
         if self._last is not None and np.array_equal(self._last[0], pos) and np.array_equal(self._last[1], free):
             return self._last[2].copy()
         out = np.zeros_like(pos, dtype=np.float64)
-        if self._tree is None:
-            return out
-        points = np.flatnonzero(free)
-        # a point within the radius of a facet is within radius + the facet's size of one of its corners
-        distance, _ = self._tree.query(pos[points], distance_upper_bound=self.radius + self._spacing)
-        near = points[np.isfinite(distance)]
-        if len(near):
-            # only the facets within reach of these nodes: midpoint within radius + size of one
-            reach, _ = cKDTree(pos[near]).query(self._middles, distance_upper_bound=self.radius + self._spacing)
-            facets = np.isfinite(reach)
-            offset = _closest(pos[near], [c[facets] for c in self.corners]) - pos[near]
-            close = np.linalg.norm(offset, axis=1) <= self.radius
-            out[near[close]] = offset[close]
+        if len(self.facets):
+            corners = [pos[self.facets[:, i]] for i in range(self.facets.shape[1])]
+            sides = zip(corners, corners[1:] + corners[:1], strict=True)
+            size = max(np.linalg.norm(a - b, axis=1).max() for a, b in sides)  # the longest facet edge
+            bound = self.radius + size  # a point within the radius of a facet: this near its corners and middle
+            points = np.flatnonzero(free)
+            distance, _ = self._tree(pos).query(pos[points], distance_upper_bound=bound)
+            near = points[np.isfinite(distance)]
+            if len(near):
+                reach, _ = cKDTree(pos[near]).query(sum(corners) / len(corners), distance_upper_bound=bound)
+                facets = np.isfinite(reach)  # only the facets within reach of these nodes
+                offset = _closest(pos[near], [c[facets] for c in corners]) - pos[near]
+                close = np.linalg.norm(offset, axis=1) <= self.radius
+                out[near[close]] = offset[close]
         self._last = (np.array(pos, copy=True), np.array(free, copy=True), out.copy())
         return out

@@ -54,8 +54,8 @@ from scipy.sparse.linalg import LinearOperator, cg
 
 from .gas import GAMMA, pressure, sound_speed
 
-__all__ = ["Grid", "BOUNDARIES", "advective_flux", "advect", "solve_pressure", "project", "step", "time_step",
-           "StepInfo", "OUTLETS", "outlet_ends", "outlet_terms", "correct_outlets"]
+__all__ = ["Grid", "BOUNDARIES", "advective_flux", "advect", "solve_pressure", "jacobi_cg", "project", "step",
+           "time_step", "StepInfo", "OUTLETS", "outlet_ends", "outlet_terms", "correct_outlets"]
 
 BOUNDARIES = ("wall", "open", "inlet")
 OUTLETS = ("extrapolate", "attenuate", "characteristic")
@@ -374,18 +374,26 @@ def solve_pressure(coefficients: list[np.ndarray], diagonal: np.ndarray, rhs: np
         solid = grid.solid.ravel()
         diagonal, rhs = np.where(solid, 1.0, diagonal), np.where(solid, p_star.ravel(), rhs)
     matrix = (_laplacian(coefficients, grid) + sp.diags(diagonal)).tocsr()
-    inverse = 1.0 / matrix.diagonal()
-    iterations = [0]
+    solution, iterations, residual = jacobi_cg(matrix, matrix.diagonal(), rhs, p_star.ravel(), dt, rtol)
+    return solution.reshape(grid.shape), iterations, residual
+
+
+def jacobi_cg(matrix, diagonal: np.ndarray, rhs: np.ndarray, start: np.ndarray, dt: float, rtol: float = 1e-10,
+              what: str = "the pressure solve") -> tuple[np.ndarray, int, float]:
+    """Jacobi-preconditioned CG on an SPD ``matrix`` (sparse or a LinearOperator) with the flat
+    ``diagonal`` of it, from ``start``: (solution, iterations, relative residual); RuntimeError
+    naming ``what`` and dt when it does not converge."""
+    inverse, iterations = 1.0 / diagonal, [0]
 
     def count(_):
         iterations[0] += 1
 
-    solution, failed = cg(matrix, rhs, x0=p_star.ravel(), rtol=rtol, atol=0.0, maxiter=10 * rhs.size,
+    solution, failed = cg(matrix, rhs, x0=start, rtol=rtol, atol=0.0, maxiter=10 * rhs.size,
                           M=LinearOperator(matrix.shape, lambda v: inverse * v), callback=count)
     if failed:
-        raise RuntimeError(f"the pressure solve did not converge in {failed} CG iterations (dt {dt:g})")
+        raise RuntimeError(f"{what} did not converge in {failed} CG iterations (dt {dt:g})")
     residual = float(np.linalg.norm(matrix @ solution - rhs) / max(np.linalg.norm(rhs), 1e-300))
-    return solution.reshape(grid.shape), iterations[0], residual
+    return solution, iterations[0], residual
 
 
 def project(advected: np.ndarray, before: np.ndarray, grid: Grid, dt: float, gamma: float = GAMMA,

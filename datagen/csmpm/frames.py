@@ -35,7 +35,7 @@ def gas_frames(scene: str, grid, state, gamma: float, solver: dict, output: dict
     is the start. RuntimeError naming ``scene`` if the gas leaves the physical states."""
     states, times, wall, iterations, substeps = [state], [0.0], [0.0], [0], 0
     run = {"state": state}
-    advance_one = b2b1.step if solver.get("scheme", "B1B0") == "B2B1" else euler.step
+    advance_one = b2b1.step if solver["scheme"] == "B2B1" else euler.step
 
     def advance(t: float, remaining: float):
         dt = min(euler.time_step(run["state"], grid, solver["cfl"], solver["acoustic"], gamma), remaining)
