@@ -21,7 +21,7 @@ import yaml
 from datagen.config import ConfigError, read_yaml, reject_unknown
 
 # ConfigError is the one error of every config in the project (datasets, scenes, training runs).
-__all__ = ["ConfigError", "build", "load", "apply_overrides", "to_dict"]
+__all__ = ["ConfigError", "build", "load", "apply_overrides", "to_dict", "at_least"]
 
 
 def _type_name(annotation) -> str:
@@ -147,3 +147,14 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
 def to_dict(instance) -> dict:
     """Plain nested dict of a config dataclass (YAML-ready)."""
     return dataclasses.asdict(instance)
+
+
+def at_least(section, prefix: str, lowest: int, keys, optional: bool = False) -> None:
+    """ConfigError naming the first of ``keys`` below ``lowest`` (None passes when ``optional``)."""
+    for key in keys:
+        value = getattr(section, key)
+        if value is None and optional:
+            continue
+        if value < lowest:
+            allowed = f">= {lowest}" + (" or null" if optional else "")
+            raise ConfigError(f"config key '{prefix}.{key}' must be {allowed}, got {value}")

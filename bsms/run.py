@@ -19,9 +19,10 @@ import torch
 import yaml
 
 from bsms.checkpoint import CheckpointError, load_checkpoint
-from bsms.config import ConfigError, apply_overrides, build, load, to_dict
+from bsms.config import ConfigError, apply_overrides, at_least, build, load, to_dict
 from bsms.data import GraphOptions, NoiseOptions, saved_graph_options
 from bsms.fields import FieldSpec
+from bsms.models.config import ModelConfig
 from bsms.models.simulator import LearnedSimulator
 from bsms.rollout import DEFAULT_BOUND
 from bsms.solver_runs import SOLVER_SETTINGS
@@ -67,64 +68,6 @@ class DatasetConfig:
 
 
 @dataclass
-class ModelConfig:
-    """name: the core network; latent: width of latents and hidden layers; hidden_layers per
-    MLP; passes: message passes of meshgraphnets (bsms_gnn makes one per level).
-
-    transition (bsms_gnn only; thesis §4.4.4.1, Table 4.7): ``bistride`` (the weighted
-    aggregation and return of §4.3.2), ``none`` (pool and unpool by index), ``graph_conv`` (one
-    unweighted graph convolution), ``pos_kernel`` (inverse-distance weights, Liu et al.) or
-    ``learnable`` (one message pass per transition, Fortunato et al.).
-    grid_* (ms_gnn_grid; thesis §4.4.2.3, Table 4.3): levels (the mesh, then the grids), message
-    passes per level (the mesh first; each level above the bottom passes on the way down and
-    again on the way up), the finest grid's cell size per dimension (empty: twice the mean rest
-    length of the mesh edges of each graph) and its inflation from level to level.
-    pool_ratio (graph_unets): fraction of nodes top-k pooling keeps at each level.
-    """
-
-    name: Literal["bsms_gnn", "meshgraphnets", "ms_gnn_grid", "graph_unets"] = "bsms_gnn"
-    latent: int = 128
-    hidden_layers: int = 2
-    passes: int = 15
-    transition: Literal["bistride", "none", "graph_conv", "pos_kernel", "learnable"] = "bistride"
-    grid_levels: int = 4
-    grid_passes: list[int] = field(default_factory=lambda: [4, 2, 2, 4])
-    grid_dx: list[float] = field(default_factory=list)
-    grid_inflation: float = 2.0
-    pool_ratio: float = 0.5
-
-    def validate(self, prefix: str) -> None:
-        _at_least(self, prefix, 1, ("latent", "hidden_layers", "passes", "grid_levels"))
-        if self.transition != "bistride" and self.name != "bsms_gnn":
-            raise ConfigError(f"config key '{prefix}.transition' applies to bsms_gnn only; {self.name} "
-                              f"has its own transitions (leave it at bistride)")
-        if len(self.grid_passes) != self.grid_levels or min(self.grid_passes) < 1:
-            raise ConfigError(f"config key '{prefix}.grid_passes' must give one pass count >= 1 per grid level "
-                              f"({self.grid_levels}, '{prefix}.grid_levels'), got {self.grid_passes}")
-        if any(dx <= 0 for dx in self.grid_dx):
-            raise ConfigError(f"config key '{prefix}.grid_dx' must hold positive cell sizes (one per dimension) "
-                              f"or be empty (automatic), got {self.grid_dx}")
-        if self.grid_inflation <= 1:
-            raise ConfigError(f"config key '{prefix}.grid_inflation' must be > 1, got {self.grid_inflation}")
-        if not 0 < self.pool_ratio < 1:
-            raise ConfigError(f"config key '{prefix}.pool_ratio' must be between 0 and 1 (exclusive), "
-                              f"got {self.pool_ratio}")
-
-    def core_options(self, dim: int) -> dict:
-        """Keyword options of the core network beyond the common ones."""
-        if self.name == "bsms_gnn":
-            return {"transition": self.transition}
-        if self.name == "ms_gnn_grid":
-            if self.grid_dx and len(self.grid_dx) != dim:
-                raise ConfigError(f"config key 'model.grid_dx' must give one cell size per dimension ({dim}), "
-                                  f"got {self.grid_dx}")
-            return {"passes": list(self.grid_passes), "dx": list(self.grid_dx), "inflation": self.grid_inflation}
-        if self.name == "graph_unets":
-            return {"ratio": self.pool_ratio}
-        return {}
-
-
-@dataclass
 class OptimConfig:
     """AdamW with a linear warm-up over ``warmup`` steps, then a cosine decay to
     ``lr * min_lr_ratio`` at the last step; gradients clipped to norm ``grad_clip`` (null: off)."""
@@ -138,7 +81,7 @@ class OptimConfig:
     def validate(self, prefix: str) -> None:
         if self.lr <= 0:
             raise ConfigError(f"config key '{prefix}.lr' must be positive, got {self.lr}")
-        _at_least(self, prefix, 0, ("weight_decay", "warmup"))
+        at_least(self, prefix, 0, ("weight_decay", "warmup"))
         if not 0.0 <= self.min_lr_ratio <= 1.0:
             raise ConfigError(f"config key '{prefix}.min_lr_ratio' must lie in [0, 1], got {self.min_lr_ratio}")
         if self.grad_clip is not None and self.grad_clip <= 0:
@@ -206,9 +149,9 @@ class TrainConfig:
         if self.trajectories is not None and self.trajectories < 1:
             raise ConfigError(f"config key '{prefix}.trajectories' must be >= 1 (null: every training trajectory), "
                               f"got {self.trajectories}")
-        _at_least(self, prefix, 1, ("steps", "batch_size", "normalizer_steps", "log_every", "valid_every",
+        at_least(self, prefix, 1, ("steps", "batch_size", "normalizer_steps", "log_every", "valid_every",
                                     "valid_samples", "checkpoint_every", "unroll"))
-        _at_least(self, prefix, 0, ("seed", "workers", "unroll_warmup"))
+        at_least(self, prefix, 0, ("seed", "workers", "unroll_warmup"))
         _check_device(self.device, f"{prefix}.device")
 
 
@@ -250,9 +193,9 @@ class EvaluateConfig:
     def validate(self, prefix: str) -> None:
         if self.split not in ("train", "valid", "test"):
             raise ConfigError(f"config key '{prefix}.split' must be train, valid or test, got {self.split!r}")
-        _at_least(self, prefix, 1, ("trajectories", "steps", "threads"), optional=True)
-        _at_least(self, prefix, 0, ("gifs",))
-        _at_least(self, prefix, 1, ("batch", "workers"))
+        at_least(self, prefix, 1, ("trajectories", "steps", "threads"), optional=True)
+        at_least(self, prefix, 0, ("gifs",))
+        at_least(self, prefix, 1, ("batch", "workers"))
         if self.bound <= 0:
             raise ConfigError(f"config key '{prefix}.bound' must be positive, got {self.bound}")
         # runs saved before the setting was renamed list 'reference'
@@ -279,6 +222,9 @@ class Config:
     def validate(self, prefix: str = "") -> None:
         if not self.name or "/" in self.name or self.name.startswith("."):
             raise ConfigError(f"config key 'name' must be a run folder name (no '/'), got {self.name!r}")
+        if self.model.first_level >= self.graph.levels:
+            raise ConfigError(f"config key 'model.first_level' must be below 'graph.levels' ({self.graph.levels}): "
+                              f"the coarsest level always passes messages; got {self.model.first_level}")
         if self.graph.from_rest and self.train.unroll > 1:
             raise ConfigError("config key 'train.unroll' must be 1 with 'graph.from_rest': every frame is predicted "
                               f"from the rest shape and the drive alone, so unrolled steps see the same inputs as "
@@ -287,17 +233,6 @@ class Config:
     @property
     def run_dir(self) -> Path:
         return Path(self.runs) / self.name
-
-
-def _at_least(section, prefix: str, lowest: int, keys, optional: bool = False) -> None:
-    """ConfigError naming the first of ``keys`` below ``lowest`` (None passes when ``optional``)."""
-    for key in keys:
-        value = getattr(section, key)
-        if value is None and optional:
-            continue
-        if value < lowest:
-            allowed = f">= {lowest}" + (" or null" if optional else "")
-            raise ConfigError(f"config key '{prefix}.{key}' must be {allowed}, got {value}")
 
 
 def _device_label(key: str) -> str:

@@ -29,6 +29,9 @@ def test_the_clearance_is_the_vector_to_the_nearest_wall_within_the_radius():
     np.testing.assert_allclose(out[:n_body], expected, rtol=0, atol=1e-15)
     assert (np.linalg.norm(out[:n_body], axis=1) > 0).sum() >= 10 and not out[n_body:].any()
     assert np.array_equal(clearance(shifted, free), out), "asked again: the same answer"
+    pressed, kept = shifted.copy(), clearance._last
+    pressed[punch] += [0.0, -0.3]  # only the punch moves (frames from rest): the kept answer, not a new search
+    assert np.array_equal(clearance(pressed, free), out) and clearance._last is kept
     moved = shifted + [0.3, -0.2]  # body and box moved together: the walls are read where they are
     np.testing.assert_allclose(clearance(moved, free), out, rtol=0, atol=1e-15)
     brute = closest_points(shifted[:n_body], rest[facets[:4, 0]], rest[facets[:4, 1]]) - shifted[:n_body]

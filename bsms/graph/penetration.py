@@ -159,7 +159,7 @@ class Clearance:
         self.facets = np.concatenate(containers) if containers else np.zeros((0, rest.shape[1]), np.int64)
         self.excluded = np.unique(self.facets)
         self._walls: tuple[np.ndarray, cKDTree] | None = None  # the container's nodes and their tree
-        self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (pos, free, out) of the last call
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (key, free, out) of the last call
 
     def _tree(self, pos: np.ndarray) -> cKDTree:
         """A KD-tree of the container's nodes at ``pos``, rebuilt only when they move."""
@@ -171,8 +171,10 @@ class Clearance:
     def __call__(self, pos: np.ndarray, free: np.ndarray) -> np.ndarray:
         """(N, d): for free nodes at ``pos`` (all scenario nodes, the container's included) within
         the contact radius of the container, the vector to its nearest point; 0 elsewhere. The
-        last answer is kept: frames from rest (``graph.from_rest``) ask the same every time."""
-        if self._last is not None and np.array_equal(self._last[0], pos) and np.array_equal(self._last[1], free):
+        last answer is kept, keyed by what it depends on (the free nodes and the container, not the
+        moving obstacles): frames from rest (``graph.from_rest``) ask the same every time."""
+        key = np.concatenate([pos[free], pos[self.excluded]]) if len(self.facets) else np.zeros((0, pos.shape[1]))
+        if self._last is not None and np.array_equal(self._last[1], free) and np.array_equal(self._last[0], key):
             return self._last[2].copy()
         out = np.zeros_like(pos, dtype=np.float64)
         if len(self.facets):
@@ -189,5 +191,5 @@ class Clearance:
                 offset = _closest(pos[near], [c[facets] for c in corners]) - pos[near]
                 close = np.linalg.norm(offset, axis=1) <= self.radius
                 out[near[close]] = offset[close]
-        self._last = (np.array(pos, copy=True), np.array(free, copy=True), out.copy())
+        self._last = (key, np.array(free, copy=True), out.copy())
         return out

@@ -100,14 +100,16 @@ class MessagePassingBlock(nn.Module):
     Args:
         latent: H, the node latent width.
         edge_feature_dims: F^s of each edge set, in the order edge sets are passed to forward.
+        layer_norm: LayerNorm on the output of every MLP (the thesis' choice).
     """
 
-    def __init__(self, latent: int, edge_feature_dims: list[int], hidden: int = 128, hidden_layers: int = 2):
+    def __init__(self, latent: int, edge_feature_dims: list[int], hidden: int = 128, hidden_layers: int = 2,
+                 layer_norm: bool = True):
         super().__init__()
         self.edge_mlps = nn.ModuleList(
-            mlp(dim + 2 * latent, latent, hidden, hidden_layers) for dim in edge_feature_dims
+            mlp(dim + 2 * latent, latent, hidden, hidden_layers, layer_norm) for dim in edge_feature_dims
         )
-        self.node_mlp = mlp(latent * (1 + len(edge_feature_dims)), latent, hidden, hidden_layers)
+        self.node_mlp = mlp(latent * (1 + len(edge_feature_dims)), latent, hidden, hidden_layers, layer_norm)
 
     def forward(self, v: Tensor, edge_sets: list[EdgeSet]) -> Tensor:
         """v: (N, H), one EdgeSet per edge MLP -> (N, H)."""

@@ -20,18 +20,21 @@ __all__ = ["BSMSGNN", "apply_transition"]
 
 
 def add_unet_modules(module: nn.Module, node_in: int, node_out: int, edge_feature_dims: list[int], n_levels: int,
-                     latent: int, hidden: int, hidden_layers: int) -> None:
+                     latent: int, hidden: int, hidden_layers: int, layer_norm: bool = True,
+                     first_level: int = 0) -> None:
     """The modules of a U-shaped core with one message pass per level (BSMS-GNN, GraphUNets):
-    ``encoder``, ``down_blocks`` and ``up_blocks`` (one per level above the bottom),
-    ``bottom_block`` and ``decoder``, registered on ``module`` in this order (their state_dict keys)."""
+    ``encoder``, ``down_blocks`` and ``up_blocks`` (one per level from ``first_level`` to the one
+    above the bottom), ``bottom_block`` and ``decoder``, registered on ``module`` in this order
+    (their state_dict keys); ``layer_norm`` on the encoder's and the blocks' MLPs."""
 
     def block() -> MessagePassingBlock:
-        return MessagePassingBlock(latent, list(edge_feature_dims), hidden, hidden_layers)
+        return MessagePassingBlock(latent, list(edge_feature_dims), hidden, hidden_layers, layer_norm)
 
-    module.encoder = mlp(node_in, latent, hidden, hidden_layers)
-    module.down_blocks = nn.ModuleList(block() for _ in range(n_levels - 1))
+    passing = max(0, n_levels - 1 - first_level)
+    module.encoder = mlp(node_in, latent, hidden, hidden_layers, layer_norm)
+    module.down_blocks = nn.ModuleList(block() for _ in range(passing))
     module.bottom_block = block()
-    module.up_blocks = nn.ModuleList(block() for _ in range(n_levels - 1))
+    module.up_blocks = nn.ModuleList(block() for _ in range(passing))
     module.decoder = mlp(latent, node_out, hidden, hidden_layers, layer_norm=False)
 
 
@@ -47,20 +50,29 @@ class BSMSGNN(nn.Module):
             block runs on its coarsest level), one with more uses only the first ``n_levels``.
         transition: how latents move between levels, one of ``bistride`` (default), ``none``,
             ``graph_conv``, ``pos_kernel``, ``learnable`` (:mod:`bsms.models.transition_variants`).
+        layer_norm: LayerNorm on the encoder's and the message passes' MLPs (default, the thesis');
+            False drops it (a ``learnable`` transition keeps its own).
+        first_level: the finest level that passes messages (default 0, every level). The levels
+            below it only carry latents: encoded at level 0, pooled down, unpooled up with their
+            skip connection, decoded; their edges are never read (``model.first_level``).
 
     ``needs_context`` is True only for the transitions that read positions (``pos_kernel``,
     ``learnable``); the others get no Context and cost nothing beyond the transition itself.
     """
 
     def __init__(self, node_in: int, node_out: int, edge_feature_dims: list[int], n_levels: int,
-                 latent: int = 128, hidden: int = 128, hidden_layers: int = 2, transition: str = "bistride"):
+                 latent: int = 128, hidden: int = 128, hidden_layers: int = 2, transition: str = "bistride",
+                 layer_norm: bool = True, first_level: int = 0):
         super().__init__()
         if n_levels < 1:
             raise ValueError(f"n_levels must be at least 1, got {n_levels}")
+        if not 0 <= first_level < n_levels:
+            raise ValueError(f"first_level must lie in [0, n_levels) = [0, {n_levels}), got {first_level}")
         if transition not in TRANSITIONS:
             raise ValueError(f"unknown transition {transition!r}; choose one of {', '.join(TRANSITIONS)}")
-        self.n_levels = n_levels
-        add_unet_modules(self, node_in, node_out, edge_feature_dims, n_levels, latent, hidden, hidden_layers)
+        self.n_levels, self.first_level = n_levels, first_level
+        add_unet_modules(self, node_in, node_out, edge_feature_dims, n_levels, latent, hidden, hidden_layers,
+                         layer_norm, first_level)
         self.transitions = make_transitions(transition, n_levels, latent, hidden, hidden_layers)
         self.needs_context = self.transitions.needs_context
 
@@ -69,12 +81,16 @@ class BSMSGNN(nn.Module):
         depth = min(self.n_levels, len(levels))
         v = self.encoder(node_features).to(node_features.dtype)  # the residual stream: float32 under autocast
         skips = []
+        first = self.first_level
         for l in range(depth - 1):
-            v = self.down_blocks[l](v, levels[l].edge_sets)
+            if l >= first:
+                v = self.down_blocks[l - first](v, levels[l].edge_sets)
             skips.append(v)
             v = self.transitions.down(v, levels, l, context)
         v = self.bottom_block(v, levels[depth - 1].edge_sets)
         for l in reversed(range(depth - 1)):
             v = self.transitions.up(v, levels, l, context)
-            v = self.up_blocks[l](v, levels[l].edge_sets) + skips[l]
+            if l >= first:
+                v = self.up_blocks[l - first](v, levels[l].edge_sets)
+            v = v + skips[l]
         return self.decoder(v)

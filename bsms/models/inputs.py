@@ -20,7 +20,8 @@ class Level(NamedTuple):
     """One level of the multi-level graph a core network reads: its edge sets and the
     transitions to and from the next level (:class:`~bsms.graph.Transition` with torch tensors).
 
-    ``down`` (level l -> l+1) and ``up`` (l+1 -> l) are None on the coarsest level.
+    ``down`` (level l -> l+1) and ``up`` (l+1 -> l) are None on the coarsest level; ``edge_sets``
+    is empty on a level the core passes no messages on (BSMS-GNN below its ``first_level``).
     ``nodes`` (n_l,): the level-0 index of each node of this level (sorted within each graph;
     None where a caller has no use for it). The nodes of level l+1 are a subset of those of
     level l (bi-stride pooling keeps nodes), so their level-l indices follow from ``nodes``.

@@ -123,6 +123,8 @@ class LearnedSimulator(nn.Module):
 
     def _level(self, graph: LevelGraph, l: int, accumulate: bool) -> Level:
         nodes, edge_index = graph[f"nodes_{l}"], graph[f"edge_index_{l}"]
+        if l < getattr(self.core, "first_level", 0) and l + 1 < self.n_levels:  # a level that passes no messages
+            return Level([], graph.transition("down", l), graph.transition("up", l), nodes)
         spec = self.spec
         if spec.is_lagrangian and spec.material_dim == self.dim:
             rest_and_pos = torch.cat([graph.rest_pos, graph.pos], dim=-1).index_select(0, nodes)
