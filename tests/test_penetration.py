@@ -11,6 +11,7 @@ from bsms.graph.penetration import (
     Penetration,
     closest_points,
     closest_points_3d,
+    inside_outline,
     solid_winding_numbers,
     winding_numbers,
 )
@@ -32,6 +33,20 @@ def test_winding_numbers_are_one_inside_and_zero_outside(reverse):
     points = np.array([[0.5, 0.5], [0.01, 0.99], [1.5, 0.5], [-0.2, -0.2], [0.5, 1.0001]])
     w = winding_numbers(points, a, b)
     np.testing.assert_allclose(np.abs(w), [1, 1, 0, 0, 0], atol=1e-12)
+    assert inside_outline(points, a, b).tolist() == [True, True, False, False, False]
+
+
+def test_the_even_odd_rule_agrees_with_winding_numbers_on_a_star():
+    rng = np.random.default_rng(0)
+    angles = np.linspace(0, 2 * np.pi, 25)[:-1]
+    radius = np.where(np.arange(24) % 2 == 0, 1.0, 0.45)  # a 12-point star: concave corners
+    a = np.stack([radius * np.cos(angles), radius * np.sin(angles)], 1)
+    b = np.roll(a, -1, axis=0)
+    points = np.concatenate([rng.uniform(-1.1, 1.1, (2000, 2)), a[:3] * [1.0, 0.5], [[0.0, 0.0], [2.0, 0.0]]])
+    expected = np.abs(winding_numbers(points, a, b)) > 0.5
+    assert 300 < expected.sum() < 1700
+    assert np.array_equal(inside_outline(points, a, b), expected)
+    assert np.array_equal(inside_outline(points, a[::-1], b[::-1]), expected), "either orientation"
 
 
 def test_closest_points_on_segments_in_closed_form():
