@@ -152,13 +152,15 @@ class ObstacleReach:
         self.self_contact, self.edges = self_contact, edges
         self.excluded = np.zeros(0, np.int64) if excluded is None else np.asarray(excluded, np.int64)
         self.several_bodies = len(np.unique(self.body_id[: self.n_body])) > 1
-        self._obstacles: tuple[np.ndarray, cKDTree] | None = None
+        self._trees: dict[str, tuple[np.ndarray, cKDTree]] = {}
 
-    def _obstacle_tree(self, obstacle_pos: np.ndarray) -> cKDTree:
-        """A KD-tree of the obstacle nodes, rebuilt only when they move."""
-        if self._obstacles is None or not np.array_equal(self._obstacles[0], obstacle_pos):
-            self._obstacles = (obstacle_pos.copy(), cKDTree(obstacle_pos))
-        return self._obstacles[1]
+    def _tree(self, which: str, points: np.ndarray) -> cKDTree:
+        """A KD-tree of ``points`` (the ``body``'s or the ``obstacles``' nodes), rebuilt only when
+        they move (frames from rest keep the body where it is; static walls stay)."""
+        kept = self._trees.get(which)
+        if kept is None or not np.array_equal(kept[0], points):
+            kept = self._trees[which] = (points.copy(), cKDTree(points))
+        return kept[1]
 
     def frame(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(chosen, contacts) of positions ``pos`` (N, d) of all scenario nodes: the obstacle
@@ -169,8 +171,8 @@ class ObstacleReach:
         obstacles = np.setdiff1d(np.arange(self.n_body, n), self.excluded, assume_unique=True)
         body_obstacle, chosen = np.zeros((2, 0), np.int64), obstacles
         if len(obstacles) and (self.reach is not None or not self.self_contact):
-            near = cKDTree(pos[: self.n_body]).sparse_distance_matrix(
-                self._obstacle_tree(pos[obstacles]), self.radius if self.reach is None else self.reach,
+            near = self._tree("body", pos[: self.n_body]).sparse_distance_matrix(
+                self._tree("obstacles", pos[obstacles]), self.radius if self.reach is None else self.reach,
                 output_type="ndarray")
             touching = near[near["v"] <= self.radius]
             body_obstacle = np.stack([touching["i"], obstacles[touching["j"]]]).astype(np.int64)
