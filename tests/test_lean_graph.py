@@ -157,6 +157,11 @@ def test_any_subset_of_optional_nodes_gives_a_valid_hierarchy(self_loops, seed):
     assert len(expected[0]) > 20 and all(len(e) for e in expected)
     for found, reference in zip(per_level, expected, strict=True):
         assert set(map(tuple, found.T.tolist())) == reference
+    other = sub.closure(chosen[: len(chosen) // 2])
+    assert sub.levels(present)[0] is levels, "the same nodes again: the kept answer"
+    fresh = SubHierarchy(hierarchy, body.n_nodes).levels(other)[0]
+    for ours, theirs in zip(sub.levels(other)[0], fresh, strict=True):  # other nodes: restricted anew
+        assert np.array_equal(ours.nodes, theirs.nodes) and np.array_equal(ours.edge_index, theirs.edge_index)
 
 
 def test_every_node_present_is_the_full_hierarchy_bit_for_bit():

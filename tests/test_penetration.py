@@ -7,6 +7,7 @@ from conftest import tiny_run_config
 
 from bsms.config import ConfigError
 from bsms.data import GraphOptions, NodeType, Scenario
+from bsms.graph import penetration
 from bsms.graph.penetration import (
     Penetration,
     closest_points,
@@ -47,6 +48,20 @@ def test_the_even_odd_rule_agrees_with_winding_numbers_on_a_star():
     assert 300 < expected.sum() < 1700
     assert np.array_equal(inside_outline(points, a, b), expected)
     assert np.array_equal(inside_outline(points, a[::-1], b[::-1]), expected), "either orientation"
+
+
+def test_long_outlines_are_pruned_to_the_same_nearest_points():
+    rng = np.random.default_rng(1)
+    angles = np.sort(rng.uniform(0, 2 * np.pi, 300))
+    radius = 0.02 * (1 + 0.3 * np.sin(5 * angles))  # a wavy outline of uneven segments
+    a = np.stack([radius * np.cos(angles), radius * np.sin(angles)], 1)
+    b = np.roll(a, -1, axis=0)
+    points = np.concatenate([rng.uniform(-0.03, 0.03, (500, 2)), a[:20], 0.5 * (a[:20] + b[:20])])
+    found = closest_points(points, a, b)
+    assert len(a) > penetration.PRUNE_SEGMENTS
+    whole = penetration._on_segments(points[:, None, :], a, b)  # every segment, the unpruned rule
+    expected = whole[np.arange(len(points)), ((whole - points[:, None]) ** 2).sum(-1).argmin(1)]
+    assert np.array_equal(found, expected), "bit for bit the nearest point of the unpruned search"
 
 
 def test_closest_points_on_segments_in_closed_form():

@@ -126,6 +126,7 @@ class SubHierarchy:
             ancestors.append(hierarchy.finest_indices(l + 1)[index])
         self.ancestors = np.stack(ancestors, axis=1)  # (N, L): level-0 index of each node's ancestor per level
         self._everything = None
+        self._last: tuple[np.ndarray, tuple] | None = None  # (present, result) of the last restriction
 
     @property
     def n_levels(self) -> int:
@@ -142,8 +143,11 @@ class SubHierarchy:
         """The levels restricted to ``present`` ((N,) bool, closed: from :meth:`closure`).
 
         -> (levels, keep, local) in stacked numbering: keep (nodes of all levels,) bool, which
-        nodes stay; local: their index within their restricted level (-1 elsewhere).
+        nodes stay; local: their index within their restricted level (-1 elsewhere). The last
+        answer is kept: consecutive frames often hold the same obstacle nodes.
         """
+        if self._last is not None and np.array_equal(self._last[0], present):
+            return self._last[1]
         keep = present[self.finest]
         kept = np.cumsum(keep)
         counts = np.diff(np.concatenate([[0], kept[self.offsets[1:] - 1]]))
@@ -152,7 +156,8 @@ class SubHierarchy:
             if self._everything is None:
                 self._everything = self._restrict(keep, local, counts)
             return self._everything, keep, local
-        return self._restrict(keep, local, counts), keep, local
+        self._last = (present.copy(), (self._restrict(keep, local, counts), keep, local))
+        return self._last[1]
 
     def _restrict(self, keep, local, counts) -> tuple[FrameLevel, ...]:
         nodes = np.split(local[: self.sizes[0]][self.finest[keep]], np.cumsum(counts)[:-1])

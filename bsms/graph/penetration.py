@@ -56,11 +56,29 @@ def _on_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[None] + t[..., None] * ab[None]
 
 
+# outlines with more segments than this are searched through a tree of their midpoints
+PRUNE_SEGMENTS = 32
+
+
 def closest_points(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(P, 2) the point of the segments a[s]-b[s] (S, 2) nearest each of ``points`` (P, 2)."""
-    candidates = _on_segments(points[:, None, :], a, b)
-    nearest = ((candidates - points[:, None, :]) ** 2).sum(-1).argmin(1)
-    return candidates[np.arange(len(points)), nearest]
+    """(P, 2) the point of the segments a[s]-b[s] (S, 2) nearest each of ``points`` (P, 2) (of
+    equally near segments, the first). Long outlines are pruned first, exactly: a point whose
+    nearest segment midpoint is d away is within d of its nearest segment, so only segments whose
+    midpoint lies within d + (longest segment) / 2 of it can be nearer."""
+    if len(a) <= PRUNE_SEGMENTS or not len(points):
+        candidates = _on_segments(points[:, None, :], a, b)
+        nearest = ((candidates - points[:, None, :]) ** 2).sum(-1).argmin(1)
+        return candidates[np.arange(len(points)), nearest]
+    tree = cKDTree(0.5 * (a + b))
+    reach = tree.query(points)[0] + 0.5 * np.sqrt(((b - a) ** 2).sum(-1).max()) * (1 + 1e-12)
+    near = tree.query_ball_point(points, reach)
+    counts = np.fromiter(map(len, near), np.int64, len(points))
+    owner, segment = np.repeat(np.arange(len(points)), counts), np.concatenate(near).astype(np.int64)
+    p, start, ab = points[owner], a[segment], b[segment] - a[segment]
+    t = np.clip(((p - start) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), np.finfo(float).tiny), 0.0, 1.0)
+    candidates = start + t[:, None] * ab
+    order = np.lexsort((segment, ((candidates - p) ** 2).sum(-1), owner))  # by point, distance, segment
+    return candidates[order[np.cumsum(counts) - counts]]
 
 
 def solid_winding_numbers(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
