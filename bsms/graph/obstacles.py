@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from bsms.graph.contact import contact_edges
 
-__all__ = ["Subdivision", "subdivide_obstacles", "subdivide_facets", "facet_edges", "ObstacleReach"]
+__all__ = ["Subdivision", "subdivide_obstacles", "subdivide_facets", "facet_edges", "ObstacleReach", "KeptTree"]
 
 
 @dataclass(frozen=True)
@@ -132,6 +132,20 @@ def facet_edges(facets: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
+class KeptTree:
+    """A KD-tree of some points, built again only when they move: ``tree(points)`` returns the
+    tree of ``points``, the kept one while they equal the last ones given (frames from rest keep
+    the body at rest; static walls stay where they are)."""
+
+    def __init__(self):
+        self._kept: tuple[np.ndarray, cKDTree] | None = None
+
+    def __call__(self, points: np.ndarray) -> cKDTree:
+        if self._kept is None or not np.array_equal(self._kept[0], points):
+            self._kept = (points.copy(), cKDTree(points))
+        return self._kept[1]
+
+
 class ObstacleReach:
     """Which obstacle nodes a frame's graph holds, and the frame's level-0 contact edges.
 
@@ -152,15 +166,7 @@ class ObstacleReach:
         self.self_contact, self.edges = self_contact, edges
         self.excluded = np.zeros(0, np.int64) if excluded is None else np.asarray(excluded, np.int64)
         self.several_bodies = len(np.unique(self.body_id[: self.n_body])) > 1
-        self._trees: dict[str, tuple[np.ndarray, cKDTree]] = {}
-
-    def _tree(self, which: str, points: np.ndarray) -> cKDTree:
-        """A KD-tree of ``points`` (the ``body``'s or the ``obstacles``' nodes), rebuilt only when
-        they move (frames from rest keep the body where it is; static walls stay)."""
-        kept = self._trees.get(which)
-        if kept is None or not np.array_equal(kept[0], points):
-            kept = self._trees[which] = (points.copy(), cKDTree(points))
-        return kept[1]
+        self._body_tree, self._obstacle_tree = KeptTree(), KeptTree()
 
     def frame(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(chosen, contacts) of positions ``pos`` (N, d) of all scenario nodes: the obstacle
@@ -171,8 +177,8 @@ class ObstacleReach:
         obstacles = np.setdiff1d(np.arange(self.n_body, n), self.excluded, assume_unique=True)
         body_obstacle, chosen = np.zeros((2, 0), np.int64), obstacles
         if len(obstacles) and (self.reach is not None or not self.self_contact):
-            near = self._tree("body", pos[: self.n_body]).sparse_distance_matrix(
-                self._tree("obstacles", pos[obstacles]), self.radius if self.reach is None else self.reach,
+            near = self._body_tree(pos[: self.n_body]).sparse_distance_matrix(
+                self._obstacle_tree(pos[obstacles]), self.radius if self.reach is None else self.reach,
                 output_type="ndarray")
             touching = near[near["v"] <= self.radius]
             body_obstacle = np.stack([touching["i"], obstacles[touching["j"]]]).astype(np.int64)

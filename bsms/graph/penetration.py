@@ -21,6 +21,8 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from bsms.graph.obstacles import KeptTree
+
 __all__ = ["Penetration", "Clearance", "outlines", "winding_numbers", "inside_outline", "closest_points",
            "solid_winding_numbers", "closest_points_3d"]
 
@@ -190,15 +192,8 @@ class Clearance:
         self.radius = float(radius)
         self.facets = np.concatenate(containers) if containers else np.zeros((0, rest.shape[1]), np.int64)
         self.excluded = np.unique(self.facets)
-        self._walls: tuple[np.ndarray, cKDTree] | None = None  # the container's nodes and their tree
+        self._walls = KeptTree()  # of the container's nodes
         self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (key, free, out) of the last call
-
-    def _tree(self, pos: np.ndarray) -> cKDTree:
-        """A KD-tree of the container's nodes at ``pos``, rebuilt only when they move."""
-        walls = pos[self.excluded]
-        if self._walls is None or not np.array_equal(self._walls[0], walls):
-            self._walls = (walls.copy(), cKDTree(walls))
-        return self._walls[1]
 
     def __call__(self, pos: np.ndarray, free: np.ndarray) -> np.ndarray:
         """(N, d): for free nodes at ``pos`` (all scenario nodes, the container's included) within
@@ -215,7 +210,7 @@ class Clearance:
             size = max(np.linalg.norm(a - b, axis=1).max() for a, b in sides)  # the longest facet edge
             bound = self.radius + size  # a point within the radius of a facet: this near its corners and middle
             points = np.flatnonzero(free)
-            distance, _ = self._tree(pos).query(pos[points], distance_upper_bound=bound)
+            distance, _ = self._walls(pos[self.excluded]).query(pos[points], distance_upper_bound=bound)
             near = points[np.isfinite(distance)]
             if len(near):
                 reach, _ = cKDTree(pos[near]).query(sum(corners) / len(corners), distance_upper_bound=bound)

@@ -30,7 +30,7 @@ def add_unet_modules(module: nn.Module, node_in: int, node_out: int, edge_featur
     def block() -> MessagePassingBlock:
         return MessagePassingBlock(latent, list(edge_feature_dims), hidden, hidden_layers, layer_norm)
 
-    passing = max(0, n_levels - 1 - first_level)
+    passing = n_levels - 1 - first_level  # levels that pass messages on the way down (and up)
     module.encoder = mlp(node_in, latent, hidden, hidden_layers, layer_norm)
     module.down_blocks = nn.ModuleList(block() for _ in range(passing))
     module.bottom_block = block()
