@@ -34,7 +34,7 @@ def _beside_clamp(traj, tol):
 
 
 CONTAINED = {"disks": _inside_box, "glyphs": _inside_box, "balls": _inside_box, "wavy_channel": _inside_channel,
-             "cantilever": _beside_clamp, "press": _inside_box}
+             "cantilever": _beside_clamp, "press": _inside_box, "bracket": _inside_box}
 
 
 # the MPM families; the flow family's Eulerian data (no bodies, no energy diagnostics) is checked
@@ -73,15 +73,15 @@ def test_sampling_is_seeded_and_differs_between_indices():
     assert trajectory_config(dconfig, "train", 3) != trajectory_config(dconfig, "test", 3)
 
 
-@pytest.mark.parametrize("base", ["press_deep", "press_quickstart"])
-def test_the_xl_datasets_only_add_training_trajectories(base):
-    """press_deep_xl and press_quickstart_xl only add training trajectories: the trajectories each
+@pytest.mark.parametrize(("base", "factor"), [("press_deep", 2), ("press_quickstart", 2), ("bracket", 3)])
+def test_the_xl_datasets_only_add_training_trajectories(base, factor):
+    """press_deep_xl, press_quickstart_xl and bracket_xl only add training trajectories: the trajectories each
     shares with its base are the same simulations (its config tells users to hard-link them), and
     the rest are new."""
     small, large = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in (base, f"{base}_xl"))
     assert {k: v for k, v in large.items() if k not in ("dataset", "splits")} == \
         {k: v for k, v in small.items() if k not in ("dataset", "splits")}
-    assert large["splits"]["train"] == 2 * small["splits"]["train"]
+    assert large["splits"]["train"] == factor * small["splits"]["train"]
     for split in ("train", "valid", "test"):
         for k in (0, small["splits"][split] - 1):
             assert trajectory_config(large, split, k) == trajectory_config(small, split, k)

@@ -11,11 +11,12 @@ or raises ConfigError where the family has no room for a foreign body.
 from __future__ import annotations
 
 from ..config import ConfigError
-from . import balls, cantilever, disks, glyphs, press, shock_channel, wavy_channel
+from . import balls, bracket, cantilever, disks, glyphs, press, shock_channel, wavy_channel
 
 __all__ = ["FAMILIES", "get_family", "place"]
 
-FAMILIES = {module.NAME: module for module in (wavy_channel, disks, cantilever, glyphs, balls, press, shock_channel)}
+FAMILIES = {module.NAME: module
+            for module in (wavy_channel, disks, cantilever, glyphs, balls, press, bracket, shock_channel)}
 
 
 def get_family(name):

@@ -23,7 +23,10 @@ frame 0 (the indenter held at its start), so that gravity coming on does not set
 ``base``: ``resting`` (the body stands free on the floor: separating contact with friction
 ``friction``; pushed, it may slide and tip) or ``bonded`` (the floor is a sticky wall: the
 body's base is glued to it, so that what the indenter makes is deformation, as in a part
-bonded to its support or DeepMind's plate held at its ends).
+bonded to its support or DeepMind's plate held at its ends) or ``clamped`` (the body is set
+against the box's left wall, which is sticky, its bounding box centred in the box's height and
+raised by ``lift``: a bracket held at one end and bent by the indenter; the floor and the other
+walls are separating with ``friction``).
 ``pose``: ``upright`` sets the body down as given; ``stable`` (:func:`rest_pose`) keeps it so
 where it stands there and otherwise turns it onto the side it rests on most stably, so that no
 body starts out toppling (a J on its hook, a polygon on a corner).
@@ -71,7 +74,7 @@ def params(given: dict) -> dict:
                      positive=("size", "E", "density", "body_size", "mesh_size", "speed", "press_time"),
                      choices={"material": {"linear", "neo_hookean", "fixed_corotated"},
                               "indenter": set(INDENTER_SIZES), "pose": {"upright", "stable"},
-                              "base": {"resting", "bonded"}})
+                              "base": {"resting", "bonded", "clamped"}})
     p.update(optional)
     if p["polygon"] is not None and p["mesh"] is not None:
         raise ConfigError("params.polygon and params.mesh both give the body; give one of them (or params.char)")
@@ -190,16 +193,22 @@ def underside(shape: str, sizes: tuple, dx: np.ndarray) -> np.ndarray:
 
 def walls(base: str, friction: float) -> list[Wall]:
     """The box's walls: separating with ``friction`` everywhere, except a sticky floor (outward
-    normal -y) under a ``bonded`` base."""
+    normal -y) under a ``bonded`` base, a sticky left wall (outward normal -x) for a ``clamped`` one."""
     if base == "resting":
         return [Wall("separating", lambda c, n: np.ones(len(c), bool), friction)]
-    return [Wall("sticky", lambda c, n: n[:, 1] < -0.5), Wall("separating", lambda c, n: n[:, 1] >= -0.5, friction)]
+    axis = 1 if base == "bonded" else 0
+    return [Wall("sticky", lambda c, n: n[:, axis] < -0.5),
+            Wall("separating", lambda c, n: n[:, axis] >= -0.5, friction)]
 
 
 def build(p: dict) -> Scene:
     lower, upper = box_bounds(p["box"])
     body = body_mesh(p)
-    shift = np.array([(lower[0] + upper[0]) / 2, lower[1] + p["lift"] - body.nodes[:, 1].min()])
+    if p["base"] == "clamped":  # its leftmost points on the left wall, centred in height
+        low, high = body.nodes.min(0), body.nodes.max(0)
+        shift = np.array([lower[0] - low[0], (lower[1] + upper[1] - low[1] - high[1]) / 2 + p["lift"]])
+    else:  # centred on the floor
+        shift = np.array([(lower[0] + upper[0]) / 2, lower[1] + p["lift"] - body.nodes[:, 1].min()])
     body = Mesh(body.nodes + shift, body.cells)
     if np.any(body.nodes.max(0) > upper) or np.any(body.nodes.min(0) < lower - 1e-12):
         raise ConfigError(f"params.size: the body spans {np.round(np.ptp(body.nodes, axis=0), 6).tolist()}, "

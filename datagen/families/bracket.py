@@ -1,0 +1,123 @@
+"""Family ``bracket``: a stiff bracket clamped at one end, bent far by a moving indenter.
+
+The second driven family (issue 32): where the ``press`` family's bonded bodies move by about 1%
+of their size, a bracket held only at its left end (``params.base: clamped``: the box's left wall
+is sticky) bends by 10-25% of its length under the indenter. Bodies are random brackets
+(:func:`random_bracket`: a thick bar leaving the wall straight, then straight or curved pieces
+turning by up to 90 degrees: bars, L brackets, arcs, S and Z shapes), each drawn afresh, so that
+no test bracket is a training one. The indenter (disk or box) starts just above the bracket's
+outer part and moves down along a line near the vertical, holds and goes back
+(:mod:`datagen.scenes.press`, whose scene this family samples).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..config import ConfigError
+from ..mesh import Mesh
+from ..scenes import press as press_scene
+from ..simulation import resolve_config
+from .base import check_ranges, integer, log_midpoint, log_uniform, midpoint, uniform
+from .placement import _dataset_config, _mesh_entry
+from .press import _indenter, _simple
+
+NAME = "bracket"
+SCENE = "press"
+DIM, CONTACT, OBSTACLES, CLAMPED = 2, True, True, False
+DRIVEN = True  # the indenter moves as prescribed and does work on the body
+RANGES = {
+    "segments": [1, 3], "width": [0.18, 0.3], "turn": 90.0,
+    "size": [0.1, 0.13], "E": [3e7, 3e8], "nu": [0.3, 0.45], "density": [1000.0, 1500.0],
+    "indenters": ["disk", "box"], "indenter_scale": [0.08, 0.15], "indenter_aspect": [0.4, 1.0],
+    "indenter_offset": [0.15, 0.4], "speed": [0.08, 0.15], "angle": [-15.0, 15.0], "gap": [0.001, 0.003],
+    "press_time": 0.2, "hold_time": 0.1,
+}
+
+
+def random_bracket(rng: np.random.Generator, segments: int, width: float, turn: float = 90.0) -> list[list[float]]:
+    """The outline of a bracket: a bar of thickness ``width`` whose centreline leaves x = 0 along +x
+    with a straight first piece and goes on with ``segments`` - 1 straight or curved pieces (each
+    0.6-1.4 units long, turning by up to ``turn`` degrees either way, a curved one as an arc sampled
+    every 15 degrees), mitred joins, square ends; redrawn until the outline does not cross itself
+    and only its first end (the clamped face, at x = 0) comes within ``width`` / 2 of x = 0.
+    Scaled so that its largest extent is 1, the clamped face's middle at the origin."""
+    limit = math.radians(turn)
+    for _ in range(200):
+        heading, points = 0.0, [np.zeros(2), np.array([rng.uniform(0.6, 1.4), 0.0])]
+        for _ in range(segments - 1):
+            length, bend = rng.uniform(0.6, 1.4), rng.uniform(-limit, limit)
+            if rng.uniform() < 0.5:  # a corner, then a straight piece
+                heading += bend
+                points.append(points[-1] + length * np.array([math.cos(heading), math.sin(heading)]))
+            else:  # an arc turning by ``bend`` over ``length``
+                pieces = max(1, int(abs(bend) / math.radians(15)))
+                for _ in range(pieces):
+                    heading += bend / pieces
+                    points.append(points[-1] + length / pieces * np.array([math.cos(heading), math.sin(heading)]))
+        line = np.array(points)
+        tangent = np.diff(line, axis=0)
+        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+        normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1)
+        joins = [normal[0]] + [n1 + n2 for n1, n2 in zip(normal[:-1], normal[1:], strict=True)] + [normal[-1]]
+        offsets = []
+        for k, join in enumerate(joins):  # mitre: the offset that keeps both neighbouring edges at width / 2
+            n = normal[min(k, len(normal) - 1)]
+            join = join / np.linalg.norm(join)
+            offsets.append(join * (0.5 * width / max(float(join @ n), 0.35)))
+        offsets = np.array(offsets)
+        ring = np.concatenate([line + offsets, (line - offsets)[::-1]])
+        if _simple(ring) and (ring[1:-1, 0] > 0.5 * width).all():  # all but the clamped face's corners
+            return np.round(ring / np.ptp(ring, axis=0).max(), 6).tolist()
+    raise RuntimeError("no bracket outline in 200 draws")  # not reached for the default ranges
+
+
+def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
+    r = check_ranges(NAME, RANGES, ranges)
+    size = uniform(r, "size", rng)
+    turn = float(r["turn"])
+    if not 0.0 <= turn <= 135.0:
+        raise ConfigError(f"ranges.turn is the largest turn between a bracket's pieces in degrees: 0 to 135, "
+                          f"got {turn!r}")
+    ring = random_bracket(rng, integer(r, "segments", rng, minimum=1), uniform(r, "width", rng), turn)
+    return {
+        "polygon": ring, "size": size, "E": log_uniform(r, "E", rng), "nu": uniform(r, "nu", rng),
+        "density": uniform(r, "density", rng), **_indenter(r, rng, size),
+        "indenter_x": uniform(r, "indenter_offset", rng) * size, "speed": uniform(r, "speed", rng),
+        "angle": uniform(r, "angle", rng), "gap": uniform(r, "gap", rng),
+        "press_time": uniform(r, "press_time", rng), "hold_time": uniform(r, "hold_time", rng),
+        "base": "clamped",
+    }
+
+
+def place(meshes, dconfig, overrides: dict | None = None) -> dict:
+    """A ``press`` config clamping one mesh (2D) at its leftmost points to the box's left wall and
+    bending it like this family's brackets: mid-range size, stiffness, density and speed, a disk
+    indenter of mid-range size straight down over the outer part. ``overrides`` replace any press
+    scene parameter (e.g. ``indenter_x``, ``speed``, ``lift``: how far above the box's middle)."""
+    if isinstance(meshes, (str, Path, Mesh)) or not isinstance(meshes, (list, tuple)) or len(meshes) != 1:
+        raise ConfigError(f"family {NAME!r} clamps one body: give meshes as a list of exactly one Mesh or file path")
+    overrides = dict(overrides or {})
+    for key in overrides:
+        if key not in press_scene.DEFAULTS or key in ("char", "polygon", "mesh"):
+            known = ", ".join(k for k in sorted(press_scene.DEFAULTS) if k not in ("char", "polygon", "mesh"))
+            raise ConfigError(f"overrides.{key} is not a press scene parameter that can be overridden; known: {known}")
+    d = _dataset_config(dconfig, NAME)
+    entry, _ = _mesh_entry(meshes[0], 0, DIM, NAME)
+    r = check_ranges(NAME, RANGES, d["ranges"])
+    size = midpoint(r, "size")
+    params = {key: value for key, value in d["params"].items() if key in press_scene.DEFAULTS}
+    params.update(
+        mesh=entry, size=size, E=log_midpoint(r, "E"), nu=midpoint(r, "nu"), density=midpoint(r, "density"),
+        indenter="disk", indenter_size=[round(midpoint(r, "indenter_scale") * size, 6)],
+        indenter_x=round(midpoint(r, "indenter_offset") * size, 6), speed=midpoint(r, "speed"), angle=0.0,
+        gap=midpoint(r, "gap"), press_time=midpoint(r, "press_time"), hold_time=midpoint(r, "hold_time"),
+        base="clamped",
+    )
+    params.update(overrides)
+    config = {"scene": SCENE, "params": params, "solver": d["solver"], "output": d["output"], "seed": d["seed"]}
+    resolve_config(config)
+    return config
