@@ -77,6 +77,12 @@ class GraphOptions:
         else 0 (:class:`bsms.graph.penetration.Clearance`). What a floor's contact edges told the
         network (where the wall is) it gets per node, and a frame's graph keeps only the body and
         the other obstacles (on a press test frame the floor's contacts were a third of level 0's edges).
+    drive: with ``from_rest``, every node also gets its displacement from rest, x - X, as an input: 0
+        on the free nodes (at rest in every graph), on the obstacle nodes how far the drive has moved
+        them since the first frame. Where an indenter travels further than it is wide, the
+        penetration input saturates (a node deep inside sees the nearest side, not the depth) and
+        contact edges reach only the rest shape near where the indenter is; this tells every
+        node near it the whole travel.
     """
 
     levels: int = 4
@@ -95,6 +101,7 @@ class GraphOptions:
     from_rest: bool = False
     penetration: bool = False
     clearance: bool = False
+    drive: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
         if self.displacement and not self.quasi_static:
@@ -103,6 +110,10 @@ class GraphOptions:
         if self.from_rest and self.quasi_static:
             raise ConfigError(f"config key '{prefix}.from_rest' predicts every frame from the rest shape and the "
                               f"drive, '{prefix}.quasi_static' steps from the frame before; set one of them to false")
+        if self.drive and not self.from_rest:
+            raise ConfigError(f"config key '{prefix}.drive' tells a model that predicts from rest how far the drive "
+                              f"has moved the obstacles; set '{prefix}.from_rest: true' too, or "
+                              f"'{prefix}.drive: false'")
         if self.clearance and not self.obstacles:
             raise ConfigError(f"config key '{prefix}.clearance' stands in for the container's obstacle nodes; set "
                               f"'{prefix}.obstacles: true' too, or '{prefix}.clearance: false'")

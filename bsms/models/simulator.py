@@ -66,6 +66,8 @@ class LearnedSimulator(nn.Module):
         penetration: the graphs carry ``penetration`` (N, d), appended to the node inputs
             (``graph.penetration``, :mod:`bsms.graph.penetration`).
         clearance: the graphs carry ``clearance`` (N, d), appended after it (``graph.clearance``).
+        drive: every node's displacement from rest, pos - rest_pos (N, d), appended last
+            (``graph.drive``: with ``graph.from_rest``, how far the drive has moved the obstacles).
         latent: width of the latents.
         n_passes: message passes of meshgraphnets.
         hidden_layers: hidden layers of every MLP.
@@ -77,7 +79,7 @@ class LearnedSimulator(nn.Module):
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
                  core_options: dict | None = None, fields: FieldSpec | None = None, penetration: bool = False,
-                 clearance: bool = False):
+                 clearance: bool = False, drive: bool = False):
         super().__init__()
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
@@ -86,8 +88,8 @@ class LearnedSimulator(nn.Module):
             raise ValueError(f"the field spec ({spec.describe()}) does not fit dim={dim}, contact={contact}")
         self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
-        self.penetration, self.clearance = penetration, clearance
-        node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance))
+        self.penetration, self.clearance, self.drive = penetration, clearance, drive
+        node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance) + int(drive))
         edge_dims = [spec.mesh_edge_dim] + ([spec.contact_edge_dim] if contact else [])
         self.core = build_core(core, node_in, spec.node_out, edge_dims, n_levels=n_levels, latent=latent,
                                n_passes=n_passes, hidden_layers=hidden_layers, options=dict(core_options or {}))
@@ -119,6 +121,8 @@ class LearnedSimulator(nn.Module):
                     raise ValueError(f"the model reads {what} ('{name}', graph.{name}), which this graph lacks; "
                                      f"build it with graph.{name}: true")
                 parts.append(graph[name])
+        if self.drive:
+            parts.append(graph.pos - graph.rest_pos)
         return torch.cat(parts, dim=-1)
 
     def _level(self, graph: LevelGraph, l: int, accumulate: bool) -> Level:

@@ -23,7 +23,7 @@ from ..scenes import press as press_scene
 from ..simulation import resolve_config
 from .base import check_ranges, integer, log_midpoint, log_uniform, midpoint, uniform
 from .placement import _dataset_config, _mesh_entry
-from .press import _indenter, _simple
+from .press import _indenter, _simple, centreline, mitred_outline
 
 NAME = "bracket"
 SCENE = "press"
@@ -47,29 +47,9 @@ def random_bracket(rng: np.random.Generator, segments: int, width: float, turn: 
     Scaled so that its largest extent is 1, the clamped face's middle at the origin."""
     limit = math.radians(turn)
     for _ in range(200):
-        heading, points = 0.0, [np.zeros(2), np.array([rng.uniform(0.6, 1.4), 0.0])]
-        for _ in range(segments - 1):
-            length, bend = rng.uniform(0.6, 1.4), rng.uniform(-limit, limit)
-            if rng.uniform() < 0.5:  # a corner, then a straight piece
-                heading += bend
-                points.append(points[-1] + length * np.array([math.cos(heading), math.sin(heading)]))
-            else:  # an arc turning by ``bend`` over ``length``
-                pieces = max(1, int(abs(bend) / math.radians(15)))
-                for _ in range(pieces):
-                    heading += bend / pieces
-                    points.append(points[-1] + length / pieces * np.array([math.cos(heading), math.sin(heading)]))
-        line = np.array(points)
-        tangent = np.diff(line, axis=0)
-        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-        normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1)
-        joins = [normal[0]] + [n1 + n2 for n1, n2 in zip(normal[:-1], normal[1:], strict=True)] + [normal[-1]]
-        offsets = []
-        for k, join in enumerate(joins):  # mitre: the offset that keeps both neighbouring edges at width / 2
-            n = normal[min(k, len(normal) - 1)]
-            join = join / np.linalg.norm(join)
-            offsets.append(join * (0.5 * width / max(float(join @ n), 0.35)))
-        offsets = np.array(offsets)
-        ring = np.concatenate([line + offsets, (line - offsets)[::-1]])
+        first = np.array([rng.uniform(0.6, 1.4), 0.0])  # the straight piece leaving the wall
+        line = centreline(rng, [np.zeros(2), first], 0.0, segments - 1, lambda r: r.uniform(-limit, limit))
+        ring = mitred_outline(line, width)
         if _simple(ring) and (ring[1:-1, 0] > 0.5 * width).all():  # all but the clamped face's corners
             return np.round(ring / np.ptp(ring, axis=0).max(), 6).tolist()
     raise RuntimeError("no bracket outline in 200 draws")  # not reached for the default ranges

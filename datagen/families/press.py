@@ -72,33 +72,47 @@ def random_stroke(rng: np.random.Generator, segments: int, width: float) -> list
     15 degrees), offset by ``width`` / 2 to both sides with mitred joins and square ends;
     redrawn until the outline does not cross itself. Bars, L and V brackets, hooks and arcs."""
     for _ in range(100):
-        heading, points = rng.uniform(0, 2 * math.pi), [np.zeros(2)]
-        for _ in range(segments):
-            length, turn = rng.uniform(0.6, 1.4), rng.uniform(-0.75, 0.75) * math.pi
-            if rng.uniform() < 0.5:  # a corner, then a straight piece
-                heading += turn
-                points.append(points[-1] + length * np.array([math.cos(heading), math.sin(heading)]))
-            else:  # an arc turning by ``turn`` over ``length``
-                pieces = max(1, int(abs(turn) / math.radians(15)))
-                for _ in range(pieces):
-                    heading += turn / pieces
-                    points.append(points[-1] + length / pieces * np.array([math.cos(heading), math.sin(heading)]))
-        line = np.array(points)
-        tangent = np.diff(line, axis=0)
-        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-        normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1)
-        joins = [normal[0]] + [n1 + n2 for n1, n2 in zip(normal[:-1], normal[1:], strict=True)] + [normal[-1]]
-        offsets = []
-        for k, join in enumerate(joins):  # mitre: the offset that keeps both neighbouring edges at width / 2
-            n = normal[min(k, len(normal) - 1)]
-            join = join / np.linalg.norm(join)
-            offsets.append(join * (0.5 * width / max(float(join @ n), 0.35)))
-        offsets = np.array(offsets)
-        ring = np.concatenate([line + offsets, (line - offsets)[::-1]])
+        heading = rng.uniform(0, 2 * math.pi)
+        line = centreline(rng, [np.zeros(2)], heading, segments, lambda r: r.uniform(-0.75, 0.75) * math.pi)
+        ring = mitred_outline(line, width)
         if _simple(ring):
             ring -= (ring.max(0) + ring.min(0)) / 2
             return np.round(ring / np.ptp(ring, axis=0).max(), 6).tolist()
     raise RuntimeError("no simple stroke outline in 100 draws")  # not reached for the default ranges
+
+
+def centreline(rng: np.random.Generator, points: list, heading: float, pieces: int, turn) -> np.ndarray:
+    """``points`` continued by ``pieces`` straight or curved pieces from ``heading`` (radians): each
+    0.6-1.4 units long and turning by ``turn(rng)`` radians, half of them (at random) a corner and a
+    straight piece, the others an arc sampled every 15 degrees. (K, 2)."""
+    for _ in range(pieces):
+        length, bend = rng.uniform(0.6, 1.4), turn(rng)
+        if rng.uniform() < 0.5:  # a corner, then a straight piece
+            heading += bend
+            points.append(points[-1] + length * np.array([math.cos(heading), math.sin(heading)]))
+        else:  # an arc turning by ``bend`` over ``length``
+            steps = max(1, int(abs(bend) / math.radians(15)))
+            for _ in range(steps):
+                heading += bend / steps
+                points.append(points[-1] + length / steps * np.array([math.cos(heading), math.sin(heading)]))
+    return np.array(points)
+
+
+def mitred_outline(line: np.ndarray, width: float) -> np.ndarray:
+    """The closed outline (2K, 2) of a bar of thickness ``width`` along the centreline ``line`` (K, 2):
+    offset by ``width`` / 2 to both sides with mitred joins (the offset that keeps both neighbouring
+    edges at width / 2, at most 1 / 0.35 times that) and square ends; the left side first."""
+    tangent = np.diff(line, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1)
+    joins = [normal[0]] + [n1 + n2 for n1, n2 in zip(normal[:-1], normal[1:], strict=True)] + [normal[-1]]
+    offsets = []
+    for k, join in enumerate(joins):
+        n = normal[min(k, len(normal) - 1)]
+        join = join / np.linalg.norm(join)
+        offsets.append(join * (0.5 * width / max(float(join @ n), 0.35)))
+    offsets = np.array(offsets)
+    return np.concatenate([line + offsets, (line - offsets)[::-1]])
 
 
 def _indenter(r: dict, rng: np.random.Generator, size: float) -> dict:
