@@ -13,17 +13,12 @@ outer part and moves down along a line near the vertical, holds and goes back
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 
 from ..config import ConfigError
-from ..mesh import Mesh
-from ..scenes import press as press_scene
-from ..simulation import resolve_config
-from .base import check_ranges, integer, log_midpoint, log_uniform, midpoint, uniform
-from .placement import _dataset_config, _mesh_entry
-from .press import _indenter, _simple, centreline, mitred_outline
+from .base import check_ranges, integer, log_uniform, midpoint, uniform
+from .press import _indenter, _simple, centreline, mitred_outline, placed_config
 
 NAME = "bracket"
 SCENE = "press"
@@ -78,26 +73,5 @@ def place(meshes, dconfig, overrides: dict | None = None) -> dict:
     bending it like this family's brackets: mid-range size, stiffness, density and speed, a disk
     indenter of mid-range size straight down over the outer part. ``overrides`` replace any press
     scene parameter (e.g. ``indenter_x``, ``speed``, ``lift``: how far above the box's middle)."""
-    if isinstance(meshes, (str, Path, Mesh)) or not isinstance(meshes, (list, tuple)) or len(meshes) != 1:
-        raise ConfigError(f"family {NAME!r} clamps one body: give meshes as a list of exactly one Mesh or file path")
-    overrides = dict(overrides or {})
-    for key in overrides:
-        if key not in press_scene.DEFAULTS or key in ("char", "polygon", "mesh"):
-            known = ", ".join(k for k in sorted(press_scene.DEFAULTS) if k not in ("char", "polygon", "mesh"))
-            raise ConfigError(f"overrides.{key} is not a press scene parameter that can be overridden; known: {known}")
-    d = _dataset_config(dconfig, NAME)
-    entry, _ = _mesh_entry(meshes[0], 0, DIM, NAME)
-    r = check_ranges(NAME, RANGES, d["ranges"])
-    size = midpoint(r, "size")
-    params = {key: value for key, value in d["params"].items() if key in press_scene.DEFAULTS}
-    params.update(
-        mesh=entry, size=size, E=log_midpoint(r, "E"), nu=midpoint(r, "nu"), density=midpoint(r, "density"),
-        indenter="disk", indenter_size=[round(midpoint(r, "indenter_scale") * size, 6)],
-        indenter_x=round(midpoint(r, "indenter_offset") * size, 6), speed=midpoint(r, "speed"), angle=0.0,
-        gap=midpoint(r, "gap"), press_time=midpoint(r, "press_time"), hold_time=midpoint(r, "hold_time"),
-        base="clamped",
-    )
-    params.update(overrides)
-    config = {"scene": SCENE, "params": params, "solver": d["solver"], "output": d["output"], "seed": d["seed"]}
-    resolve_config(config)
-    return config
+    return placed_config(NAME, RANGES, "clamps", meshes, dconfig, overrides, lambda r, size: {
+        "indenter_x": round(midpoint(r, "indenter_offset") * size, 6), "base": "clamped"})

@@ -165,16 +165,25 @@ def place(meshes, dconfig, overrides: dict | None = None) -> dict:
     stiffness, density and speed, a disk indenter of mid-range size straight down over the
     body's centre. ``overrides`` replace any press scene parameter (e.g. the indenter and its
     path: ``indenter``, ``indenter_size``, ``indenter_x``, ``speed``, ``angle``, ``press_time``)."""
+    return placed_config(NAME, RANGES, "presses", meshes, dconfig, overrides, lambda r, size: {})
+
+
+def placed_config(family: str, defaults: dict, verb: str, meshes, dconfig, overrides: dict | None, placement) -> dict:
+    """The ``press`` scene config of one mesh in the setting of ``family`` (ranges ``defaults``):
+    the family's params, mid-range size, stiffness, density, speed and gap, a disk of mid-range
+    size straight down over the body's centre, then ``placement(ranges, size)`` (a dict of scene
+    parameters the family sets its own way) and ``overrides``; ``verb`` names what the family
+    does with the body in the error for anything but one mesh."""
     if isinstance(meshes, (str, Path, Mesh)) or not isinstance(meshes, (list, tuple)) or len(meshes) != 1:
-        raise ConfigError("family 'press' presses one body: give meshes as a list of exactly one Mesh or file path")
+        raise ConfigError(f"family {family!r} {verb} one body: give meshes as a list of exactly one Mesh or file path")
     overrides = dict(overrides or {})
     for key in overrides:
         if key not in press_scene.DEFAULTS or key in ("char", "polygon", "mesh"):
             known = ", ".join(k for k in sorted(press_scene.DEFAULTS) if k not in ("char", "polygon", "mesh"))
             raise ConfigError(f"overrides.{key} is not a press scene parameter that can be overridden; known: {known}")
-    d = _dataset_config(dconfig, NAME)
-    entry, _ = _mesh_entry(meshes[0], 0, DIM, NAME)
-    r = check_ranges(NAME, RANGES, d["ranges"])
+    d = _dataset_config(dconfig, family)
+    entry, _ = _mesh_entry(meshes[0], 0, DIM, family)
+    r = check_ranges(family, defaults, d["ranges"])
     size = midpoint(r, "size")
     params = {key: value for key, value in d["params"].items() if key in press_scene.DEFAULTS}
     params.update(
@@ -183,6 +192,7 @@ def place(meshes, dconfig, overrides: dict | None = None) -> dict:
         speed=midpoint(r, "speed"), angle=0.0, gap=midpoint(r, "gap"), press_time=midpoint(r, "press_time"),
         hold_time=midpoint(r, "hold_time"),
     )
+    params.update(placement(r, size))
     params.update(overrides)
     config = {"scene": SCENE, "params": params, "solver": d["solver"], "output": d["output"], "seed": d["seed"]}
     resolve_config(config)
