@@ -147,7 +147,7 @@ def test_bad_ranges_name_the_key(ranges, message):
 
 
 def test_unknown_family_lists_the_choices():
-    with pytest.raises(ConfigError, match="unknown family 'disk'.*choose one of balls, cantilever, disks, glyphs, press, shock_channel, wavy_channel"):
+    with pytest.raises(ConfigError, match="unknown family 'disk'.*choose one of balls, bracket, cantilever, disks, glyphs, press, shock_channel, wavy_channel"):
         get_family("disk")
 
 
