@@ -299,13 +299,15 @@ def test_train_py_reports_config_errors(tmp_path):
 @pytest.mark.parametrize("path", sorted((ROOT / "configs").glob("*.yaml")), ids=lambda p: p.stem)
 def test_shipped_training_configs_are_valid(path):
     from datagen.dataset_config import load_dataset_config
+    from datagen.families import get_family
 
     config = load_config(path)
     dataset = load_dataset_config(ROOT / config.dataset.config)
+    ranges = {**get_family(dataset["family"]).RANGES, **dataset.get("ranges", {})}  # the family's defaults, overridden
     # contact edges wherever bodies can touch: not for the single clamped beam, not for Eulerian flow
     assert config.graph.contact == (dataset["family"] not in ("cantilever", "shock_channel"))
     for name in config.graph.constants:  # every constant is a scene parameter the family varies
-        assert name.removeprefix("log_") in dataset.get("ranges", {}) or name.removeprefix("log_") in dataset["params"]
+        assert name.removeprefix("log_") in ranges or name.removeprefix("log_") in dataset["params"]
 
 
 def test_train_trajectories_takes_the_first_n_and_names_the_shortfall(tiny_dataset, folder, tmp_path):
