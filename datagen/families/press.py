@@ -85,6 +85,7 @@ def centreline(rng: np.random.Generator, points: list, heading: float, pieces: i
     """``points`` continued by ``pieces`` straight or curved pieces from ``heading`` (radians): each
     0.6-1.4 units long and turning by ``turn(rng)`` radians, half of them (at random) a corner and a
     straight piece, the others an arc sampled every 15 degrees. (K, 2)."""
+    points = list(points)  # the caller's list stays as given
     for _ in range(pieces):
         length, bend = rng.uniform(0.6, 1.4), turn(rng)
         if rng.uniform() < 0.5:  # a corner, then a straight piece
