@@ -17,7 +17,8 @@ settings are adequate when the finer mesh stays below the target. Ends with exac
 ``press convergence: finer mesh rel A (max B), <other reference> rel C (max D), smaller step rel
 E (max F), target T`` (``--checks`` runs some of them; the line then names only those).
 
-    python benchmarks/press_convergence.py [--data data/press_bonded] [--split test] [--trajectories 2] [--checks "finer mesh" ...]
+    python benchmarks/press_convergence.py [--data data/press_bonded] [--split test] [--trajectories 2]
+        [--checks "finer mesh" ...]
 """
 
 from __future__ import annotations
