@@ -58,6 +58,11 @@ def other_reference(config: dict) -> str:
     return "adaptive" if config["solver"].get("reference", "eulerian") == "eulerian" else "eulerian"
 
 
+def label(name: str, config: dict) -> str:
+    """A check's name as reported: the other reference's own name for ``other reference``."""
+    return other_reference(config) if name == "other reference" else name
+
+
 def check(trajectory, name: str) -> dict:
     config = copy.deepcopy(trajectory.config)
     config["solver"]["threads"] = 1
@@ -91,13 +96,11 @@ def main(argv=None) -> None:
         for name in args.checks:
             r = check(trajectory, name)
             results[name].append(r["rel_all"])
-            label = other_reference(trajectory.config) if name == "other reference" else name
-            print(f"| {path.name} | {trajectory.config['params']['E'] / 1e6:.2f} | {trajectory.substeps} | {label} "
+            print(f"| {path.name} | {trajectory.config['params']['E'] / 1e6:.2f} | {trajectory.substeps} "
+                  f"| {label(name, trajectory.config)} "
                   f"| {r['substeps']} | {r['rel_all']:.3g} | {r['seconds']:.0f} |", flush=True)
-    parts = []
-    for name, values in results.items():
-        label = other_reference(trajectory.config) if name == "other reference" else name
-        parts.append(f"{label} rel {np.mean(values):.3g} (max {np.max(values):.3g})")
+    parts = [f"{label(name, trajectory.config)} rel {np.mean(values):.3g} (max {np.max(values):.3g})"
+             for name, values in results.items()]
     print(f"press convergence: {', '.join(parts)}, target {args.target:g}")
 
 
