@@ -13,6 +13,8 @@ A dataset config (YAML, or the same keys as a dict) names a family from
     output: {frames: 40, frame_interval: 0.1}
     extends: disks.yaml                # optional: a config (relative path) this one overrides;
                                        # mappings merge key by key, except splits (replaced)
+    retry_cfl: [0.5]                   # optional: a trajectory the solver reports unstable is run
+                                       # again at these smaller CFL numbers, in order
 
 Trajectory ``index`` of split ``S`` is simulated from ``family.sample(ranges, rng, S)`` with
 ``rng = numpy.random.default_rng([seed, split number, index])`` (:func:`trajectory_config`)
@@ -33,7 +35,7 @@ from .simulation import resolve_config
 __all__ = ["SPLITS", "load_dataset_config", "trajectory_config", "trajectory_path"]
 
 SPLITS = ("train", "valid", "test")
-TOP_LEVEL = {"dataset", "family", "seed", "splits", "ranges", "params", "solver", "output"}
+TOP_LEVEL = {"dataset", "family", "seed", "splits", "ranges", "params", "solver", "output", "retry_cfl"}
 
 
 def load_dataset_config(config) -> dict:
@@ -62,8 +64,24 @@ def load_dataset_config(config) -> dict:
         raise ConfigError(f"dataset config key 'seed' must be an integer >= 0, got {seed!r}")
     for key in ("ranges", "params", "solver", "output"):
         config[key] = config.get(key) or {}
+    if "retry_cfl" in config:
+        config["retry_cfl"] = _retry_cfl(config)
     resolve_config(trajectory_config(config, next(iter(splits), "train"), 0, family=family))  # fail early
     return config
+
+
+def _retry_cfl(config: dict) -> list[float]:
+    """The checked ``retry_cfl``: CFL numbers in (0, 1], each smaller than the one before it and than
+    the solver's own ``cfl``."""
+    given = config["retry_cfl"]
+    first = config["solver"].get("cfl", 1.0)
+    fix = f"give CFL numbers in (0, 1], each smaller than the one before and than solver.cfl ({first})"
+    if not isinstance(given, list) or any(isinstance(c, bool) or not isinstance(c, (int, float)) for c in given):
+        raise ConfigError(f"dataset config key 'retry_cfl' must be a list of numbers, got {given!r}: {fix}")
+    for before, cfl in zip([first, *given], given, strict=False):
+        if not 0 < cfl < before:
+            raise ConfigError(f"dataset config key 'retry_cfl' = {given!r} has {cfl} after {before}: {fix}")
+    return [float(c) for c in given]
 
 
 def trajectory_config(dconfig: dict, split: str, index: int, *, family=None) -> dict:

@@ -2,7 +2,10 @@
 
 Trajectory ``index`` of split ``S`` of a dataset config (:mod:`datagen.dataset_config`) is
 simulated and written to ``OUT/<dataset>/<S>/<index:05d>.h5`` atomically; complete files are
-skipped, so an interrupted run resumes. ``--shard I/N`` keeps every N-th job starting at I (0-based), so N
+skipped, so an interrupted run resumes. A trajectory the solver reports unstable
+(:class:`~datagen.mpm.errors.SimulationError`) is run again at each of the config's ``retry_cfl``
+numbers in turn (its file's config then holds the CFL number it ran at); with none left, the error
+stands. ``--shard I/N`` keeps every N-th job starting at I (0-based), so N
 shards cover every trajectory exactly once.
 """
 
@@ -19,6 +22,7 @@ from .config import ConfigError, output_folder
 from .dataset import DatasetError, is_complete, save
 from .dataset_config import SPLITS, load_dataset_config, trajectory_config, trajectory_path
 from .metadata import write_metadata
+from .mpm.errors import SimulationError
 from .simulation import simulate
 
 __all__ = ["parse_shard", "jobs", "generate", "generate_one", "Summary", "Result", "main"]
@@ -62,7 +66,16 @@ def generate_one(dconfig: dict, out, split: str, index: int) -> Result:
         return Result(str(path), True)
     for stale in path.parent.glob(f".{path.stem}.*.tmp"):  # left by a killed run of this job
         stale.unlink(missing_ok=True)
-    trajectory = simulate(trajectory_config(dconfig, split, index))
+    config = trajectory_config(dconfig, split, index)
+    retries = list(dconfig.get("retry_cfl", []))
+    while True:
+        try:
+            trajectory = simulate(config)
+            break
+        except SimulationError as exc:
+            if not retries:
+                raise SimulationError(f"{split} trajectory {index} of {dconfig['dataset']}: {exc}") from None
+            config["solver"]["cfl"] = retries.pop(0)
     save(path, trajectory)
     frames = len(trajectory.times) - 1
     return Result(str(path), False, frames, trajectory.mesh.n_nodes, trajectory.wall_time)

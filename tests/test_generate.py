@@ -107,7 +107,11 @@ def test_bad_shard_spec(text, message):
     ({"family": "disk"}, "unknown family 'disk'"),
     ({"splits": {"training": 3}}, "'splits' must map some of train, valid, test"),
     ({"splits": {"train": -1}}, "'splits.train' must be a count >= 0"),
-    ({"colour": 1}, "unknown config key 'colour'; a dataset config accepts: dataset, family, output, params, ranges, seed, solver, splits"),
+    ({"colour": 1}, "unknown config key 'colour'; a dataset config accepts: dataset, family, output, params, ranges, retry_cfl, seed, solver, splits"),
+    ({"retry_cfl": [0.3]}, "dataset config key 'retry_cfl' = [0.3] has 0.3 after 0.3: give CFL numbers in (0, 1], "
+                           "each smaller than the one before and than solver.cfl (0.3)"),
+    ({"retry_cfl": [0.2, 0.2]}, "has 0.2 after 0.2"),
+    ({"retry_cfl": 0.1}, "dataset config key 'retry_cfl' must be a list of numbers, got 0.1"),
     ({"ranges": {"radius": [0.3, 0.1]}}, "ranges.radius must be a number or [low, high]"),
     ({"params": {"mesh_sise": 0.1}}, "unknown config key 'params.mesh_sise'; scene 'disks' accepts: "),
 ])
@@ -159,3 +163,31 @@ def test_a_stop_request_swallowed_by_a_finalizer_still_stops_generation(tmp_path
         interrupts.check()  # cleared: no longer raises
     finally:
         interrupts.clear()
+
+
+def test_an_unstable_trajectory_is_run_again_at_the_retry_cfl_numbers(tmp_path, monkeypatch):
+    """The solver reports every run above CFL 0.12 unstable: a trajectory is retried at 0.2 (still
+    unstable), then at 0.1, and its file is the run at 0.1, its config saying so; without a CFL
+    number left the error names the trajectory."""
+    import datagen.generate as gen
+    from datagen.mpm.errors import SimulationError
+    from datagen.simulation import simulate
+
+    tried = []
+
+    def fragile(config):
+        tried.append(config["solver"]["cfl"])
+        if config["solver"]["cfl"] > 0.12:
+            raise SimulationError("step 3: 1 of 9 particles left the mesh")
+        return simulate(config)
+
+    monkeypatch.setattr(gen, "simulate", fragile)
+    config = _config(tmp_path, splits={"train": 1}, retry_cfl=[0.2, 0.1])
+    generate(config, out=tmp_path / "a", progress=False)
+    assert tried == [0.3, 0.2, 0.1]
+    made = load(tmp_path / "a/small/train/00000.h5")
+    assert made.config["solver"]["cfl"] == 0.1
+    direct = simulate({**made.config})
+    np.testing.assert_array_equal(made.positions, direct.positions)
+    with pytest.raises(SimulationError, match=r"^train trajectory 0 of small: step 3: 1 of 9 particles left the mesh$"):
+        generate(_config(tmp_path, splits={"train": 1}, retry_cfl=[0.2]), out=tmp_path / "b", progress=False)
