@@ -15,10 +15,11 @@ A dataset config (YAML, or the same keys as a dict) names a family from
                                        # mappings merge key by key, except splits (replaced)
     retry_cfl: [0.5]                   # optional: a trajectory the solver reports unstable is run
                                        # again at these smaller CFL numbers, in order
+    redraws: 1                         # optional: then drawn afresh up to this many times
 
 Trajectory ``index`` of split ``S`` is simulated from ``family.sample(ranges, rng, S)`` with
 ``rng = numpy.random.default_rng([seed, split number, index])`` (:func:`trajectory_config`)
-and lives at ``ROOT/<dataset>/<S>/<index:05d>.h5`` (:func:`trajectory_path`).
+(redraw ``k`` of it: ``[seed, split number, index, k]``) and lives at ``ROOT/<dataset>/<S>/<index:05d>.h5`` (:func:`trajectory_path`).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from .simulation import resolve_config
 __all__ = ["SPLITS", "load_dataset_config", "trajectory_config", "trajectory_path"]
 
 SPLITS = ("train", "valid", "test")
-TOP_LEVEL = {"dataset", "family", "seed", "splits", "ranges", "params", "solver", "output", "retry_cfl"}
+TOP_LEVEL = {"dataset", "family", "seed", "splits", "ranges", "params", "solver", "output", "retry_cfl", "redraws"}
 
 
 def load_dataset_config(config) -> dict:
@@ -66,6 +67,10 @@ def load_dataset_config(config) -> dict:
         config[key] = config.get(key) or {}
     if "retry_cfl" in config:
         config["retry_cfl"] = _retry_cfl(config)
+    redraws = config.get("redraws", 0)
+    if isinstance(redraws, bool) or not isinstance(redraws, int) or redraws < 0:
+        raise ConfigError(f"dataset config key 'redraws' must be an integer >= 0 (how many times a trajectory the "
+                          f"solver cannot run is drawn afresh), got {redraws!r}")
     resolve_config(trajectory_config(config, next(iter(splits), "train"), 0, family=family))  # fail early
     return config
 
@@ -84,10 +89,12 @@ def _retry_cfl(config: dict) -> list[float]:
     return [float(c) for c in given]
 
 
-def trajectory_config(dconfig: dict, split: str, index: int, *, family=None) -> dict:
-    """The simulate() config of trajectory ``index`` of ``split``; depends on nothing else."""
+def trajectory_config(dconfig: dict, split: str, index: int, *, family=None, draw: int = 0) -> dict:
+    """The simulate() config of trajectory ``index`` of ``split`` (``draw`` > 0: its redraw of that
+    number); depends on nothing else."""
     family = family or get_family(dconfig["family"])
-    rng = np.random.default_rng([dconfig["seed"], SPLITS.index(split), index])
+    key = [dconfig["seed"], SPLITS.index(split), index] + ([draw] if draw else [])
+    rng = np.random.default_rng(key)
     sampled = family.sample(dconfig["ranges"], rng, split)
     return {
         "scene": family.SCENE, "params": {**dconfig["params"], **sampled}, "solver": dict(dconfig["solver"]),

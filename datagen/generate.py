@@ -4,8 +4,8 @@ Trajectory ``index`` of split ``S`` of a dataset config (:mod:`datagen.dataset_c
 simulated and written to ``OUT/<dataset>/<S>/<index:05d>.h5`` atomically; complete files are
 skipped, so an interrupted run resumes. A trajectory the solver reports unstable
 (:class:`~datagen.mpm.errors.SimulationError`) is run again at each of the config's ``retry_cfl``
-numbers in turn (its file's config then holds the CFL number it ran at); with none left, the error
-stands. ``--shard I/N`` keeps every N-th job starting at I (0-based), so N
+numbers in turn, then drawn afresh up to ``redraws`` times (its file's config holds what ran); with
+none left, the error stands. ``--shard I/N`` keeps every N-th job starting at I (0-based), so N
 shards cover every trajectory exactly once.
 """
 
@@ -66,19 +66,27 @@ def generate_one(dconfig: dict, out, split: str, index: int) -> Result:
         return Result(str(path), True)
     for stale in path.parent.glob(f".{path.stem}.*.tmp"):  # left by a killed run of this job
         stale.unlink(missing_ok=True)
-    config = trajectory_config(dconfig, split, index)
-    retries = list(dconfig.get("retry_cfl", []))
-    while True:
-        try:
-            trajectory = simulate(config)
-            break
-        except SimulationError as exc:
-            if not retries:
-                raise SimulationError(f"{split} trajectory {index} of {dconfig['dataset']}: {exc}") from None
-            config["solver"]["cfl"] = retries.pop(0)
+    trajectory = _simulate_stable(dconfig, split, index)
     save(path, trajectory)
     frames = len(trajectory.times) - 1
     return Result(str(path), False, frames, trajectory.mesh.n_nodes, trajectory.wall_time)
+
+
+def _simulate_stable(dconfig: dict, split: str, index: int):
+    """Trajectory ``index`` of ``split`` simulated at the solver's CFL number, then at each of
+    ``retry_cfl``; where every one fails, the same again for each of ``redraws`` fresh draws."""
+    errors = []
+    for draw in range(dconfig.get("redraws", 0) + 1):
+        config = trajectory_config(dconfig, split, index, draw=draw)
+        for cfl in [None, *dconfig.get("retry_cfl", [])]:
+            if cfl is not None:
+                config["solver"]["cfl"] = cfl
+            try:
+                return simulate(config)
+            except SimulationError as exc:
+                errors.append(str(exc))
+    tried = "" if len(errors) == 1 else f" (the last of {len(errors)} runs)"
+    raise SimulationError(f"{split} trajectory {index} of {dconfig['dataset']}{tried}: {errors[-1]}")
 
 
 @dataclass

@@ -107,7 +107,9 @@ def test_bad_shard_spec(text, message):
     ({"family": "disk"}, "unknown family 'disk'"),
     ({"splits": {"training": 3}}, "'splits' must map some of train, valid, test"),
     ({"splits": {"train": -1}}, "'splits.train' must be a count >= 0"),
-    ({"colour": 1}, "unknown config key 'colour'; a dataset config accepts: dataset, family, output, params, ranges, retry_cfl, seed, solver, splits"),
+    ({"colour": 1}, "unknown config key 'colour'; a dataset config accepts: dataset, family, output, params, ranges, redraws, retry_cfl, seed, solver, splits"),
+    ({"redraws": -1}, "dataset config key 'redraws' must be an integer >= 0 (how many times a trajectory the solver "
+                      "cannot run is drawn afresh), got -1"),
     ({"retry_cfl": [0.3]}, "dataset config key 'retry_cfl' = [0.3] has 0.3 after 0.3: give CFL numbers in (0, 1], "
                            "each smaller than the one before and than solver.cfl (0.3)"),
     ({"retry_cfl": [0.2, 0.2]}, "has 0.2 after 0.2"),
@@ -189,5 +191,36 @@ def test_an_unstable_trajectory_is_run_again_at_the_retry_cfl_numbers(tmp_path, 
     assert made.config["solver"]["cfl"] == 0.1
     direct = simulate({**made.config})
     np.testing.assert_array_equal(made.positions, direct.positions)
-    with pytest.raises(SimulationError, match=r"^train trajectory 0 of small: step 3: 1 of 9 particles left the mesh$"):
+    with pytest.raises(SimulationError, match=r"^train trajectory 0 of small \(the last of 2 runs\): step 3: 1 of 9 "
+                                              r"particles left the mesh$"):
         generate(_config(tmp_path, splits={"train": 1}, retry_cfl=[0.2]), out=tmp_path / "b", progress=False)
+
+
+def test_a_trajectory_the_solver_cannot_run_is_drawn_afresh(tmp_path, monkeypatch):
+    """Draw 0 of train trajectory 1 fails at every CFL number: it is replaced by its redraw 1 (the key
+    [seed, split, index, 1]); trajectory 0 is untouched; without redraws the error stands."""
+    import datagen.generate as gen
+    from datagen.dataset_config import trajectory_config
+    from datagen.mpm.errors import SimulationError
+    from datagen.simulation import simulate
+
+    dconfig = load_dataset_config(_config(tmp_path, splits={"train": 2}, retry_cfl=[0.1], redraws=2))
+    doomed = trajectory_config(dconfig, "train", 1)["seed"]
+    tried = []
+
+    def fragile(config):
+        tried.append((config["seed"], config["solver"]["cfl"]))
+        if config["seed"] == doomed:
+            raise SimulationError("the state became non-finite (NaN or inf)")
+        return simulate(config)
+
+    monkeypatch.setattr(gen, "simulate", fragile)
+    generate(dconfig, out=tmp_path / "a", progress=False)
+    redrawn = trajectory_config(dconfig, "train", 1, draw=1)
+    assert redrawn["seed"] != doomed and redrawn["params"] != trajectory_config(dconfig, "train", 1)["params"]
+    assert tried[1:] == [(doomed, 0.3), (doomed, 0.1), (redrawn["seed"], 0.3)]
+    for index, drawn in ((1, redrawn), (0, trajectory_config(dconfig, "train", 0))):
+        stored = load(tmp_path / f"a/small/train/{index:05d}.h5").config  # resolved: defaults added
+        assert stored["seed"] == drawn["seed"] and {k: stored["params"][k] for k in drawn["params"]} == drawn["params"]
+    with pytest.raises(SimulationError, match=r"^train trajectory 1 of small \(the last of 2 runs\): the state"):
+        generate({**dconfig, "redraws": 0}, out=tmp_path / "b", progress=False)
