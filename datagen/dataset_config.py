@@ -19,7 +19,8 @@ A dataset config (YAML, or the same keys as a dict) names a family from
 
 Trajectory ``index`` of split ``S`` is simulated from ``family.sample(ranges, rng, S)`` with
 ``rng = numpy.random.default_rng([seed, split number, index])`` (:func:`trajectory_config`)
-(redraw ``k`` of it: ``[seed, split number, index, k]``) and lives at ``ROOT/<dataset>/<S>/<index:05d>.h5`` (:func:`trajectory_path`).
+(redraw ``k`` of it: ``[seed, split number, index, k]``) and lives at
+``ROOT/<dataset>/<S>/<index:05d>.h5`` (:func:`trajectory_path`).
 """
 
 from __future__ import annotations
