@@ -100,6 +100,19 @@ def test_press_kinds_shares_press_deeps_test_split_and_trains_on_three_kinds():
     assert 28 <= letters <= 52 and all(p["char"] in "ABCDEFHKLMNPRTVWXYZ" for p in bodies if p.get("polygon") is None)
 
 
+def test_press_stiff_is_press_kinds_ten_times_stiffer_on_a_twice_finer_background():
+    """press_stiff draws press_kinds' bodies and drives in every split, each E ten times larger,
+    on a 3.75 mm background mesh; a draw the solver cannot run is replaced (redraws)."""
+    kinds, stiff = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in ("press_kinds", "press_stiff"))
+    assert stiff["params"]["mesh_size"] == 0.00375 == kinds["params"]["mesh_size"] / 2
+    assert stiff["redraws"] == 2 and kinds.get("redraws", 0) == 0
+    for split, k in [("test", 0), ("test", 7), ("valid", 3), ("train", 0), ("train", 191)]:
+        a, b = trajectory_config(kinds, split, k), trajectory_config(stiff, split, k)
+        assert b["params"]["E"] == pytest.approx(10 * a["params"]["E"], rel=1e-12)
+        same = {key: value for key, value in a["params"].items() if key not in ("E", "mesh_size")}
+        assert {key: b["params"][key] for key in same} == same and b["seed"] == a["seed"]
+
+
 def test_press_quickstart_draws_polygons_and_strokes_afresh_in_every_split():
     """The quickstart's bodies are random polygons and strokes in every split (no letters), softer
     and pressed deeper than press_kinds', and no test shape is a training one."""
