@@ -5,42 +5,26 @@ drive and the committed model predicts it through the code ``bsms.evaluate`` run
 bracket of no split (a tapered bar) is placed by ``bsms.infer`` and checked against the solver."""
 
 import json
-from pathlib import Path
 
 import numpy as np
-import torch
+from pretrained_checks import PRETRAINED, exported, fresh_rollout
 
 from bsms.infer import main as infer_main
-from bsms.learned_rollouts import learned_rollouts
-from bsms.run import load_model
 from datagen import shapes
-from datagen.dataset import load
-from datagen.generate import generate
 
-FOLDER = Path(__file__).resolve().parents[1] / "pretrained" / "bracket2d"
+FOLDER = PRETRAINED / "bracket2d"
 # measured: 0.0997 on the fresh bracket (5.5% of the body size at rest), 0.142 on the tapered bar (8.5%)
 VS_REST_FRESH, VS_REST_TAPER = 0.2, 0.3
 
 
 def test_weights_only_and_small():
-    weights = FOLDER / "checkpoints" / "best.pt"
-    assert weights.is_file() and weights.stat().st_size < 10 * 2**20
-    state = torch.load(weights, map_location="cpu", weights_only=True)
-    assert "optimizer" not in state and state["config"]["model"]["name"] == "bsms_gnn"
-    dataset = json.loads((FOLDER / "dataset.json").read_text())
+    _, dataset = exported("bracket2d")
     assert dataset["family"] == "bracket" and dataset["params"]["damping"] == 200.0
     assert dataset["params"]["mesh_size"] == 0.00375  # the background mesh a 7.5 mm one is not converged to
 
 
 def test_bends_a_fresh_bracket_far_better_than_predicting_no_motion(tmp_path):
-    dconfig = json.loads((FOLDER / "dataset.json").read_text())
-    dconfig.update(dataset="fresh_bracket", seed=987_654, splits={"test": 1})
-    generate(dconfig, out=tmp_path, splits=["test"], workers=1, progress=False)
-    trajectory = load(next((tmp_path / "fresh_bracket" / "test").glob("*.h5")))
-    frames = len(trajectory.times) - 1
-    model, config, _ = load_model(FOLDER)
-    (metrics, result), = learned_rollouts(model, config.graph, [trajectory], tmp_path / "cache", [frames])
-    assert np.isfinite(result.positions).all() and metrics["unstable_step"] is None
+    metrics = fresh_rollout(FOLDER, tmp_path)
     assert metrics["rest_rel_all"] > 0.04  # the bracket bends: no motion is far off
     assert metrics["vs_rest"] < VS_REST_FRESH, metrics["vs_rest"]
 
