@@ -73,9 +73,9 @@ def test_sampling_is_seeded_and_differs_between_indices():
     assert trajectory_config(dconfig, "train", 3) != trajectory_config(dconfig, "test", 3)
 
 
-@pytest.mark.parametrize(("base", "factor"), [("press_deep", 2), ("press_quickstart", 2), ("bracket", 3)])
+@pytest.mark.parametrize(("base", "factor"), [("press_deep", 2), ("press_quickstart", 2), ("bracket", 3), ("press_stiff", 2)])
 def test_the_xl_datasets_only_add_training_trajectories(base, factor):
-    """press_deep_xl, press_quickstart_xl and bracket_xl only add training trajectories: the trajectories each
+    """press_deep_xl, press_quickstart_xl, bracket_xl and press_stiff_xl only add training trajectories: the trajectories each
     shares with its base are the same simulations (its config tells users to hard-link them), and
     the rest are new."""
     small, large = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in (base, f"{base}_xl"))
