@@ -32,7 +32,7 @@ import numpy as np
 
 from .config import ConfigError, read_yaml, reject_unknown
 from .families import get_family
-from .simulation import resolve_config
+from .simulation import SOLVER_DEFAULTS, resolve_config
 
 __all__ = ["SPLITS", "load_dataset_config", "trajectory_config", "trajectory_path"]
 
@@ -80,7 +80,7 @@ def _retry_cfl(config: dict) -> list[float]:
     """The checked ``retry_cfl``: CFL numbers in (0, 1], each smaller than the one before it and than
     the solver's own ``cfl``."""
     given = config["retry_cfl"]
-    first = config["solver"].get("cfl", 1.0)
+    first = config["solver"].get("cfl", SOLVER_DEFAULTS["cfl"])  # the CFL number the first run uses
     fix = f"give CFL numbers in (0, 1], each smaller than the one before and than solver.cfl ({first})"
     if not isinstance(given, list) or any(isinstance(c, bool) or not isinstance(c, (int, float)) for c in given):
         raise ConfigError(f"dataset config key 'retry_cfl' must be a list of numbers, got {given!r}: {fix}")

@@ -224,3 +224,11 @@ def test_a_trajectory_the_solver_cannot_run_is_drawn_afresh(tmp_path, monkeypatc
         assert stored["seed"] == drawn["seed"] and {k: stored["params"][k] for k in drawn["params"]} == drawn["params"]
     with pytest.raises(SimulationError, match=r"^train trajectory 1 of small \(the last of 2 runs\): the state"):
         generate({**dconfig, "redraws": 0}, out=tmp_path / "b", progress=False)
+
+
+def test_retry_cfl_is_checked_against_the_solvers_default_cfl_when_none_is_given():
+    dconfig = load_dataset_config(QUICK)
+    del dconfig["solver"]["cfl"]
+    with pytest.raises(ConfigError, match=r"has 0.5 after 0.3: "):  # the solver's default CFL number, 0.3
+        load_dataset_config({**dconfig, "retry_cfl": [0.5]})
+    assert load_dataset_config({**dconfig, "retry_cfl": [0.2]})["retry_cfl"] == [0.2]
