@@ -113,6 +113,43 @@ def test_press_stiff_is_press_kinds_ten_times_stiffer_on_a_twice_finer_backgroun
         assert {key: b["params"][key] for key in same} == same and b["seed"] == a["seed"]
 
 
+def test_press_multires_meshes_press_stiff_xls_bodies_at_drawn_spacings():
+    """press_multires draws press_stiff_xl's bodies and drives; each train and valid body gets a
+    spacing of its own (log-uniform in the range, min_nodes off), the test split stays as it was."""
+    xl, multi = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in ("press_stiff_xl", "press_multires"))
+    assert multi["ranges"]["train_body_size"] == [0.0015, 0.005] and multi["splits"] == xl["splits"]
+    for k in range(xl["splits"]["test"]):
+        assert trajectory_config(multi, "test", k) == trajectory_config(xl, "test", k)
+    spacings = []
+    for split, count in [("train", 60), ("valid", 8)]:
+        for k in range(count):
+            a, b = trajectory_config(xl, split, k)["params"], trajectory_config(multi, split, k)["params"]
+            assert {key: value for key, value in b.items() if key not in ("body_size", "min_nodes")} == \
+                {key: value for key, value in a.items() if key not in ("body_size", "min_nodes")}
+            assert b["min_nodes"] == 0 and a["min_nodes"] == 1000
+            spacings.append(b["body_size"])
+    logs = np.log(spacings)
+    assert 0.0015 <= min(spacings) and max(spacings) <= 0.005 and len(set(spacings)) > 60  # rounded to 1 um
+    # log-uniform: the mean of the logs is the log of the geometric mean, 68 draws within 4 standard errors
+    assert abs(logs.mean() - np.log(np.sqrt(0.0015 * 0.005))) < 4 * np.log(0.005 / 0.0015) / np.sqrt(12 * 68)
+    with pytest.raises(ConfigError, match=r"ranges.train_body_size must be a number or \[low, high\]"):
+        trajectory_config({**multi, "ranges": {**multi["ranges"], "train_body_size": [0.005, 0.001]}}, "train", 0)
+
+
+def test_a_drawn_body_spacing_meshes_the_body_at_that_spacing():
+    """The spacing a press draw takes is the one its body is meshed at (gmsh's element size: the
+    mean edge within 25% of it), from 1.5 mm (2000 nodes) to 5 mm (a hundred or two)."""
+    from datagen.scenes.press import body_mesh, params
+
+    multi = load_dataset_config(CONFIGS / "press_multires.yaml")
+    for k in (0, 1, 3, 4):
+        p = params(trajectory_config(multi, "train", k)["params"])
+        mesh = body_mesh(p)
+        edges = mesh.cells[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        mean_edge = np.linalg.norm(mesh.nodes[edges[:, 0]] - mesh.nodes[edges[:, 1]], axis=1).mean()
+        assert 0.75 * p["body_size"] < mean_edge < 1.25 * p["body_size"]
+
+
 def test_press_quickstart_draws_polygons_and_strokes_afresh_in_every_split():
     """The quickstart's bodies are random polygons and strokes in every split (no letters), softer
     and pressed deeper than press_kinds', and no test shape is a training one."""

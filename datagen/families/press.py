@@ -6,7 +6,10 @@ and valid splits draw from ``ranges.train_chars`` or, with probability ``ranges.
 (default 0) a random stroke (:func:`random_stroke`: a thick bent bar, the primitive letters
 and brackets are made of); the test split from ``ranges.test_chars`` or, with probabilities
 ``ranges.test_polygons`` and ``ranges.test_strokes``, a polygon or a stroke -- shapes never seen
-in training (every polygon and stroke is drawn afresh, so a test one is never a training one). The
+in training (every polygon and stroke is drawn afresh, so a test one is never a training one). With
+``ranges.train_body_size`` ([low, high] m, log-uniform; default none) the train and valid bodies
+are meshed at a spacing drawn for each (``params.min_nodes`` does not refine them), the test ones
+at ``params.body_size``: a model learns bodies meshed finer and coarser than its test split. The
 indenter (disk, box or wedge, sized relative to the body) starts just above the body at a
 random offset and moves along a random line near the vertical at a few cm/s, then back
 (:mod:`datagen.scenes.press`).
@@ -38,7 +41,7 @@ RANGES = {
     "size": [0.1, 0.13], "E": [1e6, 2e7], "nu": [0.3, 0.45], "density": [1000.0, 1500.0],
     "indenters": ["disk", "box", "wedge"], "indenter_scale": [0.12, 0.25], "indenter_aspect": [0.4, 1.0],
     "indenter_offset": [-0.25, 0.25], "speed": [0.03, 0.06], "angle": [-10.0, 10.0], "gap": [0.001, 0.003],
-    "press_time": 0.2, "hold_time": 0.0,
+    "press_time": 0.2, "hold_time": 0.0, "train_body_size": None,
 }
 
 
@@ -152,13 +155,16 @@ def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
     elif kind < polygons + strokes:
         width = uniform(r, "stroke_width", rng)
         body = {"polygon": random_stroke(rng, integer(r, "stroke_segments", rng, minimum=1), width)}
-    return {
+    drawn = {
         **body, "size": size, "E": log_uniform(r, "E", rng), "nu": uniform(r, "nu", rng),
         "density": uniform(r, "density", rng), **_indenter(r, rng, size),
         "indenter_x": uniform(r, "indenter_offset", rng) * size, "speed": uniform(r, "speed", rng),
         "angle": uniform(r, "angle", rng), "gap": uniform(r, "gap", rng),
         "press_time": uniform(r, "press_time", rng), "hold_time": uniform(r, "hold_time", rng),
     }
+    if r["train_body_size"] is not None and split != "test":  # drawn last: every other draw stays as it was
+        drawn.update(body_size=round(log_uniform(r, "train_body_size", rng), 6), min_nodes=0)
+    return drawn
 
 
 def place(meshes, dconfig, overrides: dict | None = None) -> dict:
