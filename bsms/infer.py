@@ -38,6 +38,7 @@ from datagen.config import output_folder
 from datagen.dataset import DatasetError
 from datagen.families import place
 from datagen.mesh import Mesh, MeshError
+from datagen.mpm.errors import SimulationError
 from datagen.scenes import get_scene
 from datagen.simulation import resolve_config
 
@@ -144,7 +145,7 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
     truth = None
     if solver:
         start = time.perf_counter()
-        trajectory = simulate(placed.sim_config)
+        trajectory, summary["solver_cfl"] = simulate_stable(placed.sim_config)
         summary["solver_seconds"] = time.perf_counter() - start
         summary["solver_seconds_per_step"] = trajectory.wall_time / placed.steps
         truth = trajectory.positions
@@ -159,6 +160,23 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
     with atomic_path(folder / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=float))
     return summary
+
+
+def simulate_stable(config: dict):
+    """The solver on a simulate() config, then, where it goes non-finite, at half and a quarter of
+    its CFL number (a body meshed about as coarse as the background mesh can need a smaller step
+    than the data's bodies; not where ``solver.dt`` is fixed). Returns the trajectory and the CFL
+    number that ran: the speed-up is against that run."""
+    solver = resolve_config(config)["solver"]
+    cfl = solver["cfl"]
+    tries = [cfl] if solver["dt"] else [cfl, cfl / 2, cfl / 4]
+    for cfl_number in tries:
+        try:
+            return simulate({**config, "solver": {**config.get("solver", {}), "cfl": cfl_number}}), cfl_number
+        except SimulationError as exc:
+            error = exc
+    raise InferError(f"the MPM solver went non-finite on this placement at CFL {', '.join(f'{c:g}' for c in tries)} "
+                     f"({error}); run without --solver, or mesh the body finer") from None
 
 
 def _subfolders(folder: Path, paths: list[Path]) -> list[Path]:
@@ -263,7 +281,8 @@ def _describe(summary: dict) -> str:
             f"({summary['seconds_per_step'] * 1e3:.1f} ms per step; levels {summary['graph_nodes_per_level']})")
     if "rmse_all" in summary:
         line += (f"; against the solver: RMSE {summary['rmse_all']:.3g} m ({summary['rel_all']:.3g} of the body "
-                 f"size; {summary['vs_rest']:.3g} of predicting no motion), speed-up {summary['speedup']:.3g}x")
+                 f"size; {summary['vs_rest']:.3g} of predicting no motion), speed-up {summary['speedup']:.3g}x "
+                 f"(the solver at CFL {summary['solver_cfl']:g})")
     if not summary["finite"]:
         line += "; the rollout went non-finite"
     return line

@@ -15,6 +15,7 @@ from bsms.infer import main
 from bsms.run import load_config, prepare_dataset
 from bsms.trainer import Trainer
 from datagen import shapes
+from datagen.simulation import SOLVER_DEFAULTS
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -90,6 +91,43 @@ def test_2d_mesh_file_with_the_solver(run_2d, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert f"against the solver: RMSE {summary['rmse_all']:.3g} m" in printed
     assert f"{summary['vs_rest']:.3g} of predicting no motion" in printed and "solver.xdmf" in printed
+
+
+def test_the_solver_is_retried_at_smaller_cfl_numbers_where_it_goes_non_finite(run_2d, tmp_path, monkeypatch, capsys):
+    """Where the solver goes non-finite on a placement (a body meshed about as coarse as the
+    background mesh can), ``--solver`` runs it again at half and a quarter of the data's CFL
+    number and says which one ran; where all fail, one error names them and the fix."""
+    import bsms.infer as infer_module
+    from datagen.mpm.errors import SimulationError
+
+    run, _ = run_2d
+    mesh_file = write(shapes.annulus(0.5, 1.0, 0.25), tmp_path / "ring.vtu")
+    real, asked = infer_module.simulate, []
+
+    def failing_above(limit):
+        def fake(config):
+            asked.append(config["solver"]["cfl"])
+            if config["solver"]["cfl"] > limit:
+                raise SimulationError("step 7 (t = 0.01): the state became non-finite (NaN or inf)")
+            return real(config)
+        return fake
+
+    data_cfl = json.loads((run / "dataset.json").read_text())["solver"].get("cfl", SOLVER_DEFAULTS["cfl"])
+    monkeypatch.setattr(infer_module, "simulate", failing_above(0.3 * data_cfl))
+    out = tmp_path / "out"
+    assert main([str(run), "--mesh", str(mesh_file), "--steps", "3", "--solver", "--out", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert asked == [data_cfl, data_cfl / 2, data_cfl / 4] and summary["solver_cfl"] == data_cfl / 4
+    check_outputs(out, summary, 3)
+    assert f"(the solver at CFL {data_cfl / 4:g})" in capsys.readouterr().out
+    asked.clear()
+    monkeypatch.setattr(infer_module, "simulate", failing_above(0.0))
+    assert main([str(run), "--mesh", str(mesh_file), "--steps", "3", "--solver", "--out", str(out), "--quiet"]) == 2
+    assert asked == [data_cfl, data_cfl / 2, data_cfl / 4]
+    assert capsys.readouterr().err.strip() == (
+        f"error: the MPM solver went non-finite on this placement at CFL {data_cfl:g}, {data_cfl / 2:g}, "
+        f"{data_cfl / 4:g} (step 7 (t = 0.01): the state became non-finite (NaN or inf)); run without --solver, "
+        "or mesh the body finer")
 
 
 def test_mesh_four_times_larger_than_any_in_training(run_2d, tmp_path):
