@@ -32,11 +32,11 @@ from bsms.data import NodeType, Scenario
 from bsms.motion import skill
 from bsms.rollout import DEFAULT_BOUND, body_size, rollout_metrics, rollouts
 from bsms.run import load_model, resolve_device, run_dataset_config
-from datagen import simulate
 from datagen.atomic import atomic_path
 from datagen.config import output_folder
 from datagen.dataset import DatasetError
 from datagen.families import place
+from datagen.generate import simulate_retrying
 from datagen.mesh import Mesh, MeshError
 from datagen.mpm.errors import SimulationError
 from datagen.scenes import get_scene
@@ -168,15 +168,14 @@ def simulate_stable(config: dict):
     than the data's bodies; not where ``solver.dt`` is fixed). Returns the trajectory and the CFL
     number that ran: the speed-up is against that run."""
     solver = resolve_config(config)["solver"]
-    cfl = solver["cfl"]
-    tries = [cfl] if solver["dt"] else [cfl, cfl / 2, cfl / 4]
-    for cfl_number in tries:
-        try:
-            return simulate({**config, "solver": {**config.get("solver", {}), "cfl": cfl_number}}), cfl_number
-        except SimulationError as exc:
-            error = exc
-    raise InferError(f"the MPM solver went non-finite on this placement at CFL {', '.join(f'{c:g}' for c in tries)} "
-                     f"({error}); run without --solver, or mesh the body finer") from None
+    retry = [] if solver["dt"] else [solver["cfl"] / 2, solver["cfl"] / 4]
+    try:
+        trajectory, cfl = simulate_retrying(config, retry)
+    except SimulationError as exc:
+        tried = ", ".join(f"{c:g}" for c in [solver["cfl"], *retry])
+        raise InferError(f"the MPM solver went non-finite on this placement at CFL {tried} ({exc}); run without "
+                         "--solver, or mesh the body finer") from None
+    return trajectory, solver["cfl"] if cfl is None else cfl
 
 
 def _subfolders(folder: Path, paths: list[Path]) -> list[Path]:

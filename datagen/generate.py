@@ -72,19 +72,33 @@ def generate_one(dconfig: dict, out, split: str, index: int) -> Result:
     return Result(str(path), False, frames, trajectory.mesh.n_nodes, trajectory.wall_time)
 
 
+def simulate_retrying(config: dict, retry_cfl=(), errors: list | None = None):
+    """``simulate(config)``, then again at each CFL number of ``retry_cfl`` while the solver raises
+    SimulationError (each run's config says the CFL number it ran at). Returns the trajectory and
+    the retry's CFL number that ran (None: the config's own); raises the last error where every run
+    fails. ``errors`` collects each failure's message."""
+    tries = [None, *retry_cfl]
+    for k, cfl in enumerate(tries):
+        run = config if cfl is None else {**config, "solver": {**config.get("solver", {}), "cfl": cfl}}
+        try:
+            return simulate(run), cfl
+        except SimulationError as exc:
+            if errors is not None:
+                errors.append(str(exc))
+            if k == len(tries) - 1:
+                raise
+
+
 def _simulate_stable(dconfig: dict, split: str, index: int):
     """Trajectory ``index`` of ``split`` simulated at the solver's CFL number, then at each of
     ``retry_cfl``; where every one fails, the same again for each of ``redraws`` fresh draws."""
     errors = []
     for draw in range(dconfig.get("redraws", 0) + 1):
-        config = trajectory_config(dconfig, split, index, draw=draw)
-        for cfl in [None, *dconfig.get("retry_cfl", [])]:
-            if cfl is not None:
-                config["solver"]["cfl"] = cfl
-            try:
-                return simulate(config)
-            except SimulationError as exc:
-                errors.append(str(exc))
+        try:
+            return simulate_retrying(trajectory_config(dconfig, split, index, draw=draw),
+                                     dconfig.get("retry_cfl", []), errors)[0]
+        except SimulationError:
+            pass
     tried = "" if len(errors) == 1 else f" (the last of {len(errors)} runs)"
     raise SimulationError(f"{split} trajectory {index} of {dconfig['dataset']}{tried}: {errors[-1]}")
 

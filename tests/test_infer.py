@@ -97,12 +97,12 @@ def test_the_solver_is_retried_at_smaller_cfl_numbers_where_it_goes_non_finite(r
     """Where the solver goes non-finite on a placement (a body meshed about as coarse as the
     background mesh can), ``--solver`` runs it again at half and a quarter of the data's CFL
     number and says which one ran; where all fail, one error names them and the fix."""
-    import bsms.infer as infer_module
+    import datagen.generate as gen
     from datagen.mpm.errors import SimulationError
 
     run, _ = run_2d
     mesh_file = write(shapes.annulus(0.5, 1.0, 0.25), tmp_path / "ring.vtu")
-    real, asked = infer_module.simulate, []
+    real, asked = gen.simulate, []
 
     def failing_above(limit):
         def fake(config):
@@ -113,7 +113,7 @@ def test_the_solver_is_retried_at_smaller_cfl_numbers_where_it_goes_non_finite(r
         return fake
 
     data_cfl = json.loads((run / "dataset.json").read_text())["solver"].get("cfl", SOLVER_DEFAULTS["cfl"])
-    monkeypatch.setattr(infer_module, "simulate", failing_above(0.3 * data_cfl))
+    monkeypatch.setattr(gen, "simulate", failing_above(0.3 * data_cfl))
     out = tmp_path / "out"
     assert main([str(run), "--mesh", str(mesh_file), "--steps", "3", "--solver", "--out", str(out), "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
@@ -121,7 +121,7 @@ def test_the_solver_is_retried_at_smaller_cfl_numbers_where_it_goes_non_finite(r
     check_outputs(out, summary, 3)
     assert f"(the solver at CFL {data_cfl / 4:g})" in capsys.readouterr().out
     asked.clear()
-    monkeypatch.setattr(infer_module, "simulate", failing_above(0.0))
+    monkeypatch.setattr(gen, "simulate", failing_above(0.0))
     assert main([str(run), "--mesh", str(mesh_file), "--steps", "3", "--solver", "--out", str(out), "--quiet"]) == 2
     assert asked == [data_cfl, data_cfl / 2, data_cfl / 4]
     assert capsys.readouterr().err.strip() == (
