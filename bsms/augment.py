@@ -1,4 +1,4 @@
-"""Training-set augmentation by mirroring (``train.mirror``).
+"""Training-set augmentation by mirroring (``train.mirror``) and by rotation (``train.rotate``).
 
 The solver's scenes are symmetric under the reflection x -> -x whenever gravity has no x part
 and the materials are isotropic (every family here): the mirror image of a trajectory, its body,
@@ -7,6 +7,13 @@ A learned model is not mirror-equivariant by construction (its MLPs see signed o
 the reflected copies are new samples: a C and a reflected C are different shapes to it, and a
 push from the left teaches the push from the right. Only relative quantities enter the graphs,
 so where the reflection puts the scene does not matter.
+
+Rotation turns one training sample's whole graph -- body, walls, obstacles, every vector input
+and the target -- by a random angle (:func:`rotated`). It is exact where nothing in the physics
+points a way: no gravity, or gravity negligible against the loads (a stiff body pressed by an
+indenter sags by microns under its weight, and moves by millimetres), and isotropic materials.
+The network then cannot learn a shape's response in one orientation only; it has to learn it
+from the local geometry and the load, which is what carries to shapes it has not seen.
 """
 
 from __future__ import annotations
@@ -14,12 +21,17 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import torch
 
 from bsms.config import ConfigError
 from datagen.dataset import load
 from datagen.mesh import Mesh
 
-__all__ = ["mirrored", "trajectories"]
+__all__ = ["mirrored", "trajectories", "random_rotation", "rotated", "ROTATED_FIELDS"]
+
+# The vector fields of a graph on its level-0 nodes (bsms.level_graph.LevelGraph) that turn with it;
+# everything else in a graph is a scalar, an index, or derived from these by the model.
+ROTATED_FIELDS = ("pos", "rest_pos", "velocity", "target", "penetration", "clearance")
 
 
 def mirrored(trajectory, source: str = "the trajectory"):
@@ -65,3 +77,29 @@ def trajectories(files, mirror: bool = False):
         yield trajectory, source
         if mirror:
             yield mirrored(trajectory, source), f"{source}, mirrored"
+
+
+def random_rotation(dim: int, degrees: float, rng: np.random.Generator) -> np.ndarray:
+    """A (dim, dim) rotation by an angle drawn uniformly from [-degrees, degrees]: in 2D about
+    the plane's normal, in 3D about an axis drawn uniformly on the sphere (1D: the identity)."""
+    angle = np.radians(rng.uniform(-degrees, degrees))
+    if dim == 1:
+        return np.eye(1)
+    c, s = np.cos(angle), np.sin(angle)
+    if dim == 2:
+        return np.array([[c, -s], [s, c]])
+    axis = rng.normal(size=3)
+    x, y, z = axis / np.linalg.norm(axis)
+    cross = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + s * cross + (1.0 - c) * cross @ cross  # Rodrigues
+
+
+def rotated(graph, rotation: np.ndarray):
+    """``graph`` (one frame's LevelGraph) with every vector field of :data:`ROTATED_FIELDS` it
+    holds turned by ``rotation`` (d, d), in place; returns it. Offsets, norms and the contact
+    and hierarchy structure built from them are those of the turned scene."""
+    matrix = torch.as_tensor(rotation.T, dtype=graph.pos.dtype)
+    for key in ROTATED_FIELDS:
+        if key in graph:
+            graph[key] = graph[key] @ matrix.to(graph[key].dtype)
+    return graph

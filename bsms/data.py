@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from bsms.augment import trajectories
+from bsms.augment import random_rotation, rotated, trajectories
 from bsms.config import ConfigError
 from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, type_codes, world_positions
 from bsms.graph import bistride_levels
@@ -287,15 +287,16 @@ class FrameDataset(NumberedSamples):
     files (they must share one). Items are addressed by an integer, or by ``(index,
     noise_seed)`` to add the training noise of ``noise`` drawn from that seed, so the noise of
     a sample does not depend on which process or batch draws it. ``mirror``: each file also
-    enters reflected by x -> -x (:mod:`bsms.augment`), after it.
+    enters reflected by x -> -x (:mod:`bsms.augment`), after it. ``rotate`` (degrees): a sample
+    addressed with a seed is turned by an angle up to this, drawn from that seed (Lagrangian data).
     """
 
     def __init__(self, files, options: GraphOptions, noise: NoiseOptions | None = None, cache_dir=None,
-                 progress: bool = False, mirror: bool = False, loss_weight: str = "uniform"):
+                 progress: bool = False, mirror: bool = False, loss_weight: str = "uniform", rotate: float = 0.0):
         self.files = [str(f) for f in files]
         if not self.files:
             raise ValueError("FrameDataset needs at least one trajectory file")
-        self.options, self.noise = options, noise or NoiseOptions()
+        self.options, self.noise, self.rotate = options, noise or NoiseOptions(), float(rotate)
         self.scenarios: list[Scenario] = []
         self.positions: list[np.ndarray] = []
         self.velocities: list[np.ndarray] = []
@@ -317,6 +318,9 @@ class FrameDataset(NumberedSamples):
             self.positions.append(positions)
             self.velocities.append(frame_velocities(positions, initial, scenario.frame_dt, scenario.kinematic))
         self.dim = self.spec.dim
+        if self.rotate and self.states:
+            raise ConfigError(f"config key 'train.rotate' turns positions and velocities; {self.files[0]} holds "
+                              f"{self.spec.describe()} (set train.rotate: 0)")
         counts = [len(p) - 1 for p in (self.positions or self.states)]
         self._starts = np.concatenate([[0], np.cumsum(counts)])
         if loss_weight == "motion":
@@ -372,7 +376,11 @@ class FrameDataset(NumberedSamples):
         k, t = self.locate(int(index))
         if self.states:
             return self._eulerian(self.scenarios[k], self.states[k], t, noise_seed)
-        return self.scenarios[k].graph(*self.sample_state(k, t, noise_seed))
+        graph = self.scenarios[k].graph(*self.sample_state(k, t, noise_seed))
+        if self.rotate and noise_seed is not None:
+            rng = np.random.default_rng(np.random.SeedSequence(noise_seed, spawn_key=(1,)))  # not the noise's draws
+            graph = rotated(graph, random_rotation(self.dim, self.rotate, rng))
+        return graph
 
     def sample_state(self, k: int, t: int, noise_seed=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(pos, velocity, target) of the Lagrangian sample of frame t of trajectory k, (N, d)

@@ -5,6 +5,10 @@ dataset family the run was trained on -- the family's box, walls, gravity and mi
 material and speed, scaled like the family's bodies (``--scene KEY=VALUE`` changes any
 scene parameter) -- and the model rolls it out. Meshes larger than any seen in training
 work: the hierarchy is built for the new mesh (its levels are the run's ``graph.levels``).
+A mesh coarser than the family's own bodies is subdivided to their resolution where the family
+places it so (the press families: each triangle into four, its nodes kept first;
+:mod:`datagen.refine`): the model and the solver run on the finer body, and everything below is
+reported on the given mesh's nodes (``--scene refine=false`` keeps it as given).
 Outputs, in ``--out`` (default ``RUN_DIR/infer/<mesh name>``): ``prediction.xdmf`` (+ .h5)
 for ParaView, ``prediction.gif`` and ``summary.json``. With ``--solver`` the MPM solver
 runs the same setup: ``solver.xdmf`` (+ .h5) holds its body nodes at the same frames (to put
@@ -132,10 +136,12 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
              bound: float) -> dict:
     """What one rollout did (and, with ``solver``, its error and speed-up against the MPM solver);
     writes its outputs and summary.json into ``folder``."""
-    scenario = placed.scenario
-    predicted = result.positions[:, : scenario.n_body]
+    scenario, cells = placed.scenario, _reported_cells(placed.scene)
+    n = int(cells.max()) + 1  # the given meshes' nodes: the body's first ones (datagen.refine)
+    predicted = result.positions[:, :n]
     summary = {
         "run": str(run_dir), "meshes": [str(p) for p in placed.paths], "nodes": nodes,
+        "body_nodes": scenario.n_body,
         "graph_nodes_per_level": [int(round(n)) for n in np.mean(result.graph_nodes, axis=0)],
         "graph_nodes_ratio": float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body,
         "steps": len(predicted) - 1, "frame_dt": placed.frame_dt, "finite": result.finite,
@@ -148,15 +154,15 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
         trajectory, summary["solver_cfl"] = simulate_stable(placed.sim_config)
         summary["solver_seconds"] = time.perf_counter() - start
         summary["solver_seconds_per_step"] = trajectory.wall_time / placed.steps
-        truth = trajectory.positions
-        free = scenario.node_type[: scenario.n_body] == NodeType.FREE
-        size = body_size(placed.scene.body.nodes)
+        truth = trajectory.positions[:, :n]
+        free = scenario.node_type[:n] == NodeType.FREE
+        size = body_size(placed.scene.body.nodes[:n])
         metrics = rollout_metrics(predicted, truth, free, size, bound)
         summary.update({k: metrics[k] for k in ("rmse_1", "rmse_50", "rmse_all", "rel_all", "unstable_step")})
         summary.update(skill(predicted, truth, free, size, metrics["rel_all"]))
         summary["speedup"] = summary["solver_seconds_per_step"] / result.seconds_per_step
     folder.mkdir(parents=True, exist_ok=True)
-    _write_outputs(folder, placed.scene, predicted, truth, placed.frame_dt, placed.obstacle_path)
+    _write_outputs(folder, placed.scene, cells, predicted, truth, placed.frame_dt, placed.obstacle_path)
     with atomic_path(folder / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=float))
     return summary
@@ -225,20 +231,26 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     return summary
 
 
-def _write_outputs(folder: Path, scene, predicted: np.ndarray, truth, frame_dt: float,
+def _reported_cells(scene) -> np.ndarray:
+    """The cells everything is reported on: the given meshes' where the scene refined them (the
+    model and the solver ran on the finer body; the given nodes are its first ones), else the body's."""
+    return scene.body.cells if getattr(scene, "given_cells", None) is None else scene.given_cells
+
+
+def _write_outputs(folder: Path, scene, cells: np.ndarray, predicted: np.ndarray, truth, frame_dt: float,
                    obstacle_path: np.ndarray | None = None) -> None:
     times = frame_dt * np.arange(len(predicted))
     data = {}
     if truth is not None:
         data["error"] = np.linalg.norm(predicted - truth[: len(predicted)], axis=-1)
-    viz.write_xdmf(folder / "prediction.xdmf", scene.body.cells, predicted, times, data)
+    viz.write_xdmf(folder / "prediction.xdmf", cells, predicted, times, data)
     if truth is not None:
-        viz.write_xdmf(folder / "solver.xdmf", scene.body.cells, truth[: len(predicted)], times)
+        viz.write_xdmf(folder / "solver.xdmf", cells, truth[: len(predicted)], times)
     obstacles = None
     if scene.obstacle_nodes is not None and len(scene.obstacle_nodes):
         nodes = scene.obstacle_nodes if obstacle_path is None else obstacle_path[: len(predicted)]
         obstacles = (nodes, scene.obstacle_facets)
-    viz.rollout_gif(scene.body.cells, predicted, folder / "prediction.gif", truth=truth, obstacles=obstacles,
+    viz.rollout_gif(cells, predicted, folder / "prediction.gif", truth=truth, obstacles=obstacles,
                     frame_dt=frame_dt)
 
 
@@ -276,7 +288,9 @@ def main(argv=None, prog: str = "python -m bsms.infer") -> int:
 
 def _describe(summary: dict) -> str:
     """One line on one rollout's summary."""
-    line = (f"{summary['steps']} steps on {sum(summary['nodes'])} nodes "
+    refined = (f", refined to {summary['body_nodes']} for the model and the solver"
+               if summary["body_nodes"] > sum(summary["nodes"]) else "")
+    line = (f"{summary['steps']} steps on {sum(summary['nodes'])} nodes{refined} "
             f"({summary['seconds_per_step'] * 1e3:.1f} ms per step; levels {summary['graph_nodes_per_level']})")
     if "rmse_all" in summary:
         line += (f"; against the solver: RMSE {summary['rmse_all']:.3g} m ({summary['rel_all']:.3g} of the body "

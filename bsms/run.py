@@ -122,7 +122,10 @@ class TrainConfig:
     at-rest error, the RMS distance of its free nodes from frame 0 over all frames, floored at a
     quarter of the median s; weights scaled to mean 1 over the samples), so that the loss
     weighs each trajectory's error against its own motion as ``vs_rest`` does (:mod:`bsms.motion`)
-    and bodies that hardly move are not drowned by those that move far."""
+    and bodies that hardly move are not drowned by those that move far. rotate: each training
+    sample turned by a random angle up to this many degrees (0: off; 180: any orientation;
+    :mod:`bsms.augment`), for scenes whose physics has no preferred direction (gravity negligible);
+    one-step training of Lagrangian data."""
 
     steps: int = 10_000
     batch_size: int = 2
@@ -144,8 +147,14 @@ class TrainConfig:
     trajectories: int | None = None
     tensorboard: bool = False
     loss_weight: Literal["uniform", "motion"] = "uniform"
+    rotate: float = 0.0
 
     def validate(self, prefix: str) -> None:
+        if not 0.0 <= self.rotate <= 180.0:
+            raise ConfigError(f"config key '{prefix}.rotate' must lie in [0, 180] degrees, got {self.rotate}")
+        if self.rotate and self.unroll > 1:
+            raise ConfigError(f"config key '{prefix}.rotate' turns one-step samples; set '{prefix}.unroll: 1' or "
+                              f"'{prefix}.rotate: 0'")
         if self.trajectories is not None and self.trajectories < 1:
             raise ConfigError(f"config key '{prefix}.trajectories' must be >= 1 (null: every training trajectory), "
                               f"got {self.trajectories}")

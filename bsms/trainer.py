@@ -62,7 +62,7 @@ _OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.work
 # Keys added after runs were saved, with the value that keeps what those runs did.
 _ADDED = {"dataset.kind": "mpm", "graph.contact_distance": None, "train.unroll": 1, "train.unroll_gradient": "last",
           "train.unroll_warmup": 0, "graph.displacement": False, "graph.from_rest": False, "train.trajectories": None,
-          "graph.penetration": False, "graph.clearance": False, "graph.drive": False}
+          "graph.penetration": False, "graph.clearance": False, "graph.drive": False, "train.rotate": 0.0}
 
 
 def _flat(data: dict, prefix: str = "") -> dict:
@@ -171,7 +171,7 @@ class Trainer:
         cache = self.dataset_folder / "hierarchies"
         self.train_set = FrameDataset(self._train_files(), config.graph, config.noise,
                                       cache_dir=cache, progress=progress, mirror=config.train.mirror,
-                                      loss_weight=config.train.loss_weight)
+                                      loss_weight=config.train.loss_weight, rotate=config.train.rotate)
         self.valid_set = FrameDataset(split_files(self.dataset_folder, "valid"), config.graph, cache_dir=cache,
                                       progress=progress)
         if config.train.validation == "rollout" and not self.valid_set.spec.is_lagrangian:

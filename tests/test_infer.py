@@ -258,3 +258,35 @@ def test_the_committed_pretrained_press_model_infers_on_a_new_shape(tmp_path):
     assert main([str(folder), "--mesh", str(mesh_file), "--steps", "3", "--out", str(tmp_path / "out"), "--quiet"]) == 0
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["finite"] is True and summary["steps"] == 3
+
+
+def test_a_mesh_coarser_than_the_familys_bodies_is_refined_and_reported_on_its_nodes(tmp_path):
+    """A 4 mm mesh, coarser than the press family's 2.5 mm bodies, is subdivided once for the model
+    and the solver (datagen.refine); prediction.xdmf and solver.xdmf hold the given mesh's nodes
+    and cells, the errors are theirs. ``--scene refine=false`` keeps the mesh as given."""
+    from datagen.refine import subdivide
+
+    folder = Path(__file__).resolve().parents[1] / "pretrained" / "press2d"
+    ring = np.array([[0.0, 0.0], [0.12, 0.0], [0.12, 0.06], [0.07, 0.06], [0.06, 0.032], [0.05, 0.06], [0.0, 0.06]])
+    mesh = shapes.polygon(ring, size=0.004)
+    mesh_file = write(mesh, tmp_path / "plate.msh")
+    out = tmp_path / "out"
+    assert main([str(folder), "--mesh", str(mesh_file), "--steps", "2", "--solver", "--out", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["nodes"] == [mesh.n_nodes] and summary["body_nodes"] == subdivide(mesh).n_nodes
+    with meshio.xdmf.TimeSeriesReader(str(out / "prediction.xdmf")) as reader:
+        _, cells = reader.read_points_cells()
+        errors = np.stack([reader.read_data(k)[1]["error"] for k in range(3)])
+    np.testing.assert_array_equal(cells[0].data, mesh.cells)
+    predicted, solver = read_positions(out / "prediction.xdmf"), read_positions(out / "solver.xdmf")
+    assert predicted.shape == solver.shape and predicted.shape[:2] == (3, mesh.n_nodes)
+    np.testing.assert_allclose(np.linalg.norm(predicted - solver, axis=-1), errors, rtol=1e-12, atol=1e-15)
+    curve = np.sqrt(np.mean(errors[1:] ** 2, axis=1))
+    assert summary["rmse_all"] == pytest.approx(np.sqrt(np.mean(curve**2)), rel=1e-12)
+    first = predicted[0]  # the given nodes, placed: scaled and moved alike
+    ratio = np.linalg.norm(np.subtract(*first[mesh.edges.T]), axis=1) / mesh.edge_lengths
+    np.testing.assert_allclose(ratio, ratio[0], rtol=1e-9)
+    kept = tmp_path / "kept"
+    assert main([str(folder), "--mesh", str(mesh_file), "--steps", "2", "--scene", "refine=false", "--out", str(kept),
+                 "--quiet"]) == 0
+    assert json.loads((kept / "summary.json").read_text())["body_nodes"] == mesh.n_nodes

@@ -170,16 +170,19 @@ def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
 def place(meshes, dconfig, overrides: dict | None = None) -> dict:
     """A ``press`` config pressing one mesh (2D) like this family's bodies: mid-range size,
     stiffness, density and speed, a disk indenter of mid-range size straight down over the
-    body's centre. ``overrides`` replace any press scene parameter (e.g. the indenter and its
-    path: ``indenter``, ``indenter_size``, ``indenter_x``, ``speed``, ``angle``, ``press_time``)."""
+    body's centre, the mesh subdivided where it is coarser than the family's bodies (``refine``).
+    ``overrides`` replace any press scene parameter (e.g. the indenter and its path: ``indenter``,
+    ``indenter_size``, ``indenter_x``, ``speed``, ``angle``, ``press_time``; ``refine``)."""
     return placed_config(NAME, RANGES, "presses", meshes, dconfig, overrides, lambda r, size: {})
 
 
 def placed_config(family: str, defaults: dict, verb: str, meshes, dconfig, overrides: dict | None, placement) -> dict:
     """The ``press`` scene config of one mesh in the setting of ``family`` (ranges ``defaults``):
     the family's params, mid-range size, stiffness, density, speed and gap, a disk of mid-range
-    size straight down over the body's centre, then ``placement(ranges, size)`` (a dict of scene
-    parameters the family sets its own way) and ``overrides``; ``verb`` names what the family
+    size straight down over the body's centre, the mesh subdivided to the resolution of the family's
+    own bodies where it is coarser (``refine``: a model is only as good as on the meshes it was
+    trained on), then ``placement(ranges, size)`` (a dict of scene parameters the family sets its
+    own way) and ``overrides`` (``refine=False`` keeps the mesh as given); ``verb`` names what the family
     does with the body in the error for anything but one mesh."""
     if isinstance(meshes, (str, Path, Mesh)) or not isinstance(meshes, (list, tuple)) or len(meshes) != 1:
         raise ConfigError(f"family {family!r} {verb} one body: give meshes as a list of exactly one Mesh or file path")
@@ -197,7 +200,7 @@ def placed_config(family: str, defaults: dict, verb: str, meshes, dconfig, overr
         mesh=entry, size=size, E=log_midpoint(r, "E"), nu=midpoint(r, "nu"), density=midpoint(r, "density"),
         indenter="disk", indenter_size=[round(midpoint(r, "indenter_scale") * size, 6)], indenter_x=0.0,
         speed=midpoint(r, "speed"), angle=0.0, gap=midpoint(r, "gap"), press_time=midpoint(r, "press_time"),
-        hold_time=midpoint(r, "hold_time"),
+        hold_time=midpoint(r, "hold_time"), refine=True,
     )
     params.update(placement(r, size))
     params.update(overrides)

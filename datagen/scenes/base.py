@@ -41,6 +41,8 @@ class Scene:
     comes to rest under gravity (:func:`datagen.simulation.settle`), or None.
     frame_diagnostics: (simulation, state) -> name -> array, extra per-frame diagnostics
     (e.g. a slope's run-out); the simulation is a datagen.simulation.Simulation.
+    given_cells: where the body is a given mesh refined (the press scene's ``refine``), that mesh's
+    cells; its nodes are the body's first ones (None: the body is the mesh as given or built).
     """
 
     domain: Mesh
@@ -65,6 +67,7 @@ class Scene:
     collider_nodes: list = field(default_factory=list)
     damping: float = 0.0
     settle: tuple[float, float] | None = None
+    given_cells: np.ndarray | None = None
 
     @property
     def dim(self) -> int:

@@ -4,7 +4,9 @@ The body is a letter (``char``, meshed by ``datagen.shapes.glyph``), a polygon (
 its vertices) or any 2D mesh (``mesh``: a file path or an inline ``{nodes, cells}``), scaled so
 that its largest bounding-box extent is ``size`` and set on the floor of the box at its middle,
 ``lift`` above it, meshed at spacing ``body_size`` (finer if it would get fewer than
-``min_nodes`` nodes: thin letters stay resolved). The material is stiff (megapascals): the explicit solver then needs
+``min_nodes`` nodes: thin letters stay resolved); a given mesh is kept as it is, or with
+``refine`` subdivided to that resolution, its own nodes first (:func:`body_mesh`). The material
+is stiff (megapascals): the explicit solver then needs
 hundreds of substeps per frame, while the motion is slow and smooth -- the setting where a
 learned simulator pays (DeepMind's DEFORMINGPLATE is the same kind of scene).
 
@@ -44,6 +46,7 @@ from ..config import ConfigError
 from ..mesh import Mesh
 from ..mpm.boundary import Wall
 from ..mpm.colliders import Collider, Path
+from ..refine import refine_to
 from .base import Scene, box_bounds, box_domain, check_params, make_material, outline, vertex_volumes
 from .bodies import place_body, read_body
 
@@ -55,6 +58,7 @@ DEFAULTS = {
     "settle_damping": 400.0,
     "indenter": "disk", "indenter_size": [0.02], "indenter_x": 0.0, "indenter_friction": 0.3, "gap": 0.002,
     "speed": 0.045, "angle": 0.0, "press_time": 0.2, "hold_time": 0.0, "pose": "upright", "base": "resting",
+    "refine": False,
 }
 OUTPUT = {"frames": 40, "frame_interval": 0.01}
 SOLVER = {"transfer": "flip"}
@@ -99,12 +103,20 @@ def params(given: dict) -> dict:
 
 
 def body_mesh(p: dict) -> Mesh:
-    """The body, scaled to ``size`` and centred at the origin (before it is set on the floor)."""
+    """The body, scaled to ``size`` and centred at the origin (before it is set on the floor).
+    A given mesh (``mesh``) with ``refine`` is then subdivided (:func:`datagen.refine.refine_to`)
+    until its median edge is at most sqrt(2) times the spacing a polygon of its area would be
+    meshed at (``body_size``, finer per ``min_nodes``): the resolution of the family's own bodies.
+    Its nodes stay the body's first ones, in their order."""
     if p["mesh"] is not None:
         mesh = read_body(p["mesh"], 0)
         if mesh.dim != 2:
             raise ConfigError(f"params.mesh holds a {mesh.dim}D mesh; the {NAME} scene needs a 2D mesh")
-    elif p["polygon"] is not None:
+        body = place_body(rest_pose(mesh) if p["pose"] == "stable" else mesh, np.zeros(2), p["size"])
+        if p["refine"]:
+            body, _ = refine_to(body, _spacing(p, float(body.cell_measures.sum())))
+        return body
+    if p["polygon"] is not None:
         ring = np.asarray(p["polygon"], float)
         if ring.ndim != 2 or ring.shape[1] != 2 or len(ring) < 3 or not np.isfinite(ring).all():
             raise ConfigError(f"params.polygon must list at least 3 [x, y] vertices, got {p['polygon']!r}")
@@ -228,4 +240,5 @@ def build(p: dict) -> Scene:
         obstacle_facets=np.concatenate([walls_facets, surface_facets + len(walls_nodes)]).astype(np.int64),
         colliders=[collider], collider_nodes=[len(surface_nodes)], damping=float(p["damping"]),
         settle=(p["settle_time"], p["settle_damping"]) if p["settle_time"] > 0 else None,
+        given_cells=read_body(p["mesh"], 0).cells if p["mesh"] is not None and p["refine"] else None,
     )
