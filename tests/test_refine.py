@@ -90,25 +90,3 @@ def test_the_press_scene_refines_a_given_mesh_to_its_bodies_resolution(tmp_path)
     finer = scene.build(scene.params({**params, "refine": True, "min_nodes": 4000}))
     assert finer.body.n_nodes == subdivide(subdivide(given)).n_nodes
 
-
-@pytest.mark.parametrize("base", ["bonded", "clamped"])
-def test_the_convergence_check_refines_a_stored_body_where_it_stands(base):
-    """benchmarks/press_convergence.py's "finer mesh and body": the stored body, subdivided and given
-    inline, is set down exactly where the scene had set it (its nodes first), on a background twice
-    as fine."""
-    import sys
-    from pathlib import Path
-    from types import SimpleNamespace
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from press_convergence import finer_body
-
-    scene = get_scene("press")
-    params = {"char": "J", "size": 0.1, "base": base, "pose": "stable", "body_size": 0.004, "mesh_size": 0.0075}
-    body = scene.build(scene.params(params)).body
-    config = {"params": dict(params)}
-    finer_body(config, SimpleNamespace(mesh=body))
-    assert "char" not in config["params"] and config["params"]["mesh_size"] == 0.00375
-    fine = scene.build(scene.params(config["params"])).body
-    assert fine.n_nodes == body.n_nodes + len(body.edges)
-    np.testing.assert_allclose(fine.nodes[: body.n_nodes], body.nodes, rtol=0, atol=1e-15)

@@ -1,0 +1,83 @@
+"""How much of a learned model's error is the luck of one training run? Several runs, and their mean.
+
+Rolls every run out on the split of the first run's dataset (each its own graph options and
+checkpoint), then scores the mean of their predicted positions (per node and frame) the same
+way. Where the mean scores far below each run, the runs err differently and more runs (or
+seeds) would pay; where it scores about as each, their error is shared: what the data or the
+inputs cannot tell them. Prints one row per run and one for the mean (``vs at rest`` per
+trajectory, its mean, the RMSE over all steps relative to the body size), then ends with exactly
+
+    ensemble: vs at rest E of the mean of N runs, each R0-R1
+
+    python benchmarks/ensemble.py RUN RUN [RUN ...] [--split test] [--trajectories 8] [--checkpoint latest]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from bsms.fields import world_positions  # noqa: E402
+from bsms.learned_rollouts import learned_rollouts  # noqa: E402
+from bsms.motion import skill  # noqa: E402
+from bsms.rollout import body_size, rollout_metrics  # noqa: E402
+from bsms.run import dataset_folder, load_model, split_files  # noqa: E402
+from bsms.solver_runs import free_nodes  # noqa: E402
+from datagen.dataset import load  # noqa: E402
+
+
+def score(predicted: np.ndarray, trajectory, spec) -> dict:
+    """rel_all and vs_rest of positions ``predicted`` (T, N, d) against the trajectory."""
+    truth = world_positions(spec, trajectory)[: len(predicted)]
+    free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
+    metrics = rollout_metrics(predicted, truth, free, size)
+    metrics.update(skill(predicted, truth, free, size, metrics["rel_all"]))
+    return metrics
+
+
+def row(label: str, scored: list[dict]) -> str:
+    vs = [m["vs_rest"] for m in scored]
+    rel = np.mean([m["rel_all"] for m in scored])
+    return f"| {label} | {np.mean(vs):.3g} ({', '.join(f'{v:.2f}' for v in vs)}) | {100 * rel:.3g}% |"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("runs", nargs="+", help="run folders (or pretrained folders) of one family's data")
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--trajectories", type=int, default=None, help="at most this many (default: all)")
+    parser.add_argument("--checkpoint", default="latest", choices=["best", "latest"])
+    args = parser.parse_args(argv)
+    if len(args.runs) < 2:
+        parser.error("give at least two runs to average")
+    models = [load_model(run, args.checkpoint) for run in args.runs]
+    folder, _ = dataset_folder(args.runs[0], models[0][1])
+    files = split_files(folder, args.split)[: args.trajectories]
+    trajectories = [load(path) for path in files]
+    spec = models[0][0].spec
+    if not spec.is_lagrangian:
+        parser.error(f"{args.runs[0]} learned Eulerian fields; the mean of positions needs Lagrangian data")
+    frames = [len(world_positions(spec, t)) - 1 for t in trajectories]
+    print("| run | vs at rest (per trajectory) | RMSE all / body size |")
+    print("|---|---|---|")
+    predictions, each = [], []
+    for model, config, _ in models:
+        out = learned_rollouts(model, config.graph, trajectories, folder / "hierarchies", frames)
+        positions = [result.positions[:, : t.mesh.n_nodes] for (_, result), t in zip(out, trajectories, strict=True)]
+        predictions.append(positions)
+        scored = [score(p, t, spec) for p, t in zip(positions, trajectories, strict=True)]
+        each.append(np.mean([m["vs_rest"] for m in scored]))
+        print(row(config.name, scored), flush=True)
+    mean = [score(np.mean([p[k] for p in predictions], axis=0), t, spec) for k, t in enumerate(trajectories)]
+    print(row(f"mean of {len(args.runs)}", mean))
+    print(f"ensemble: vs at rest {np.mean([m['vs_rest'] for m in mean]):.3g} of the mean of {len(args.runs)} runs, "
+          f"each {min(each):.3g}-{max(each):.3g}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

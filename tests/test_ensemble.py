@@ -1,0 +1,39 @@
+"""benchmarks/ensemble.py: the mean of runs' predicted positions, scored as each run is."""
+
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import tiny_run_config
+
+from bsms.run import load_config, prepare_dataset
+from bsms.trainer import Trainer
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import ensemble  # noqa: E402
+
+
+def train(dataset, runs, name, seed):
+    config = load_config(tiny_run_config(dataset, runs, name=name, train={"steps": 4, "valid_every": 4,
+                                                                          "checkpoint_every": 4, "seed": seed}))
+    Trainer(config, dataset_folder=prepare_dataset(config, progress=False)).fit()
+    return str(runs / name)
+
+
+def test_the_mean_of_one_run_twice_is_that_run_and_of_two_runs_is_scored_alike(tiny_dataset, tmp_path, capsys):
+    first, second = train(tiny_dataset, tmp_path, "a", 0), train(tiny_dataset, tmp_path, "b", 1)
+    assert ensemble.main([first, first, "--trajectories", "2"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    row_a, row_mean, last = lines[2], lines[4], lines[-1]
+    assert row_a.split("|")[2:] == row_mean.split("|")[2:]  # identical predictions: the mean is each
+    each = float(row_a.split("|")[2].split()[0])
+    assert last == f"ensemble: vs at rest {each:.3g} of the mean of 2 runs, each {each:.3g}-{each:.3g}"
+    assert ensemble.main([first, second, "--trajectories", "2"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    runs = [float(line.split("|")[2].split()[0]) for line in lines[2:4]]
+    mean = float(lines[4].split("|")[2].split()[0])
+    assert runs[0] != runs[1]  # two seeds, two models
+    # the RMSE of the mean of predictions is at most the mean of their RMSEs (Minkowski), per trajectory
+    assert mean <= sum(runs) / 2 + 2e-3  # printed to 3 digits
+    with pytest.raises(SystemExit):
+        ensemble.main([first])

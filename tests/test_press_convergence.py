@@ -1,0 +1,47 @@
+"""benchmarks/press_convergence.py: its checks change the scene exactly as they say (no solver run)."""
+
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from datagen.scenes import get_scene
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from press_convergence import CHECKS, SHIFTS, finer_body  # noqa: E402
+
+PARAMS = {"char": "J", "size": 0.1, "pose": "stable", "body_size": 0.004, "mesh_size": 0.0075}
+
+
+@pytest.mark.parametrize("base", ["bonded", "clamped"])
+def test_finer_mesh_and_body_refines_the_stored_body_where_it_stands(base):
+    """The stored body, subdivided and given inline, is set down exactly where the scene had set it
+    (its nodes first), on a background twice as fine."""
+    scene = get_scene("press")
+    params = {**PARAMS, "base": base}
+    body = scene.build(scene.params(params)).body
+    config = {"params": dict(params)}
+    finer_body(config, SimpleNamespace(mesh=body))
+    assert "char" not in config["params"] and config["params"]["mesh_size"] == 0.00375
+    fine = scene.build(scene.params(config["params"])).body
+    assert fine.n_nodes == body.n_nodes + len(body.edges)
+    np.testing.assert_allclose(fine.nodes[: body.n_nodes], body.nodes, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize(("base", "axis"), [("bonded", 0), ("clamped", 1)])
+def test_grid_shift_moves_the_body_and_its_indenter_half_a_cell(base, axis):
+    scene = get_scene("press")
+    params = {**PARAMS, "base": base}
+    before = scene.build(scene.params(params))
+    config = {"params": dict(params, box=[0.0, 0.0, 0.24, 0.2])}
+    CHECKS["grid shift"](config, None)
+    after = scene.build(scene.params(config["params"]))
+    shift = SHIFTS["grid shift"](config)
+    assert shift[axis] == 0.00375 and shift[1 - axis] == 0.0
+    np.testing.assert_allclose(after.body.nodes - shift, before.body.nodes, rtol=0, atol=1e-15)
+    indenter = slice(-after.collider_nodes[0], None)
+    np.testing.assert_allclose(after.obstacle_nodes[indenter] - shift, before.obstacle_nodes[indenter], rtol=0,
+                               atol=1e-15)
+    assert (after.domain.nodes.min(0) == before.domain.nodes.min(0)).all()  # the grid starts where it did
