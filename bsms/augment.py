@@ -98,7 +98,7 @@ def rotated(graph, rotation: np.ndarray):
     """``graph`` (one frame's LevelGraph) with every vector field of :data:`ROTATED_FIELDS` it
     holds turned by ``rotation`` (d, d), in place; returns it. Offsets, norms and the contact
     and hierarchy structure built from them are those of the turned scene."""
-    matrix = torch.as_tensor(rotation.T, dtype=graph.pos.dtype)
+    matrix = torch.as_tensor(rotation.T)
     for key in ROTATED_FIELDS:
         if key in graph:
             graph[key] = graph[key] @ matrix.to(graph[key].dtype)

@@ -234,7 +234,7 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
 def _reported_cells(scene) -> np.ndarray:
     """The cells everything is reported on: the given meshes' where the scene refined them (the
     model and the solver ran on the finer body; the given nodes are its first ones), else the body's."""
-    return scene.body.cells if getattr(scene, "given_cells", None) is None else scene.given_cells
+    return scene.body.cells if scene.given_cells is None else scene.given_cells
 
 
 def _write_outputs(folder: Path, scene, cells: np.ndarray, predicted: np.ndarray, truth, frame_dt: float,

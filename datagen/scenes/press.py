@@ -5,7 +5,7 @@ its vertices) or any 2D mesh (``mesh``: a file path or an inline ``{nodes, cells
 that its largest bounding-box extent is ``size`` and set on the floor of the box at its middle,
 ``lift`` above it, meshed at spacing ``body_size`` (finer if it would get fewer than
 ``min_nodes`` nodes: thin letters stay resolved); a given mesh is kept as it is, or with
-``refine`` subdivided to that resolution, its own nodes first (:func:`body_mesh`). The material
+``refine`` subdivided to that resolution, its own nodes first (:func:`refined`). The material
 is stiff (megapascals): the explicit solver then needs
 hundreds of substeps per frame, while the motion is slow and smooth -- the setting where a
 learned simulator pays (DeepMind's DEFORMINGPLATE is the same kind of scene).
@@ -103,20 +103,12 @@ def params(given: dict) -> dict:
 
 
 def body_mesh(p: dict) -> Mesh:
-    """The body, scaled to ``size`` and centred at the origin (before it is set on the floor).
-    A given mesh (``mesh``) with ``refine`` is then subdivided (:func:`datagen.refine.refine_to`)
-    until its median edge is at most sqrt(2) times the spacing a polygon of its area would be
-    meshed at (``body_size``, finer per ``min_nodes``): the resolution of the family's own bodies.
-    Its nodes stay the body's first ones, in their order."""
+    """The body, scaled to ``size`` and centred at the origin (before it is set on the floor)."""
     if p["mesh"] is not None:
         mesh = read_body(p["mesh"], 0)
         if mesh.dim != 2:
             raise ConfigError(f"params.mesh holds a {mesh.dim}D mesh; the {NAME} scene needs a 2D mesh")
-        body = place_body(rest_pose(mesh) if p["pose"] == "stable" else mesh, np.zeros(2), p["size"])
-        if p["refine"]:
-            body, _ = refine_to(body, _spacing(p, float(body.cell_measures.sum())))
-        return body
-    if p["polygon"] is not None:
+    elif p["polygon"] is not None:
         ring = np.asarray(p["polygon"], float)
         if ring.ndim != 2 or ring.shape[1] != 2 or len(ring) < 3 or not np.isfinite(ring).all():
             raise ConfigError(f"params.polygon must list at least 3 [x, y] vertices, got {p['polygon']!r}")
@@ -213,9 +205,20 @@ def walls(base: str, friction: float) -> list[Wall]:
             Wall("separating", lambda c, n: n[:, axis] >= -0.5, friction)]
 
 
+def refined(p: dict, body: Mesh) -> tuple[Mesh, np.ndarray | None]:
+    """A given mesh (``mesh``) with ``refine``: ``body`` subdivided (:func:`datagen.refine.refine_to`)
+    until its median edge is at most sqrt(2) times the spacing a polygon of its area would be meshed
+    at (``body_size``, finer per ``min_nodes``), the resolution of the family's own bodies, its nodes
+    first; and the given mesh's cells where it was subdivided (else None)."""
+    if p["mesh"] is None or not p["refine"]:
+        return body, None
+    fine, times = refine_to(body, _spacing(p, float(body.cell_measures.sum())))
+    return fine, body.cells if times else None
+
+
 def build(p: dict) -> Scene:
     lower, upper = box_bounds(p["box"])
-    body = body_mesh(p)
+    body, given_cells = refined(p, body_mesh(p))
     if p["base"] == "clamped":  # its leftmost points on the left wall, centred in height
         low, high = body.nodes.min(0), body.nodes.max(0)
         shift = np.array([lower[0] - low[0], (lower[1] + upper[1] - low[1] - high[1]) / 2 + p["lift"]])
@@ -240,5 +243,5 @@ def build(p: dict) -> Scene:
         obstacle_facets=np.concatenate([walls_facets, surface_facets + len(walls_nodes)]).astype(np.int64),
         colliders=[collider], collider_nodes=[len(surface_nodes)], damping=float(p["damping"]),
         settle=(p["settle_time"], p["settle_damping"]) if p["settle_time"] > 0 else None,
-        given_cells=read_body(p["mesh"], 0).cells if p["mesh"] is not None and p["refine"] else None,
+        given_cells=given_cells,
     )
