@@ -2,8 +2,9 @@
 
 For the first ``--trajectories`` files of a split, re-runs each generating config (one thread)
 
-* with the background mesh 2x finer (``params.mesh_size / 2``; the body mesh, whose vertices
-  are the tracked points, unchanged),
+* with the background mesh 2x finer (``params.mesh_size / 2`` and ``params.grid_ratio / 2``, so
+  a background that follows the body's spacing halves too; the body mesh, whose vertices are the
+  tracked points, unchanged),
 * with the background mesh and the body mesh 2x finer (the body's own mesh subdivided once,
   :func:`datagen.refine.subdivide`, compared at its original nodes): where a body is meshed at
   about the background's spacing, halving the background alone leaves about one particle per
@@ -15,7 +16,8 @@ For the first ``--trajectories`` files of a split, re-runs each generating confi
 * with a 3x smaller time step (``solver.cfl / 3``, or ``solver.dt / 3`` where it is fixed): the
   data is made at the largest CFL number the solver takes (1), which is adequate when this
   check stays within a tenth of the target,
-* with the body set down half a background cell further along x (the box widened by one cell,
+* with the body set down half a background cell further along x (the box widened by one cell of
+  the background the body had, :func:`datagen.scenes.press.background_spacing`,
   the body and its indenter centred in it; y for a body clamped to the left wall, centred in the
   box's height; compared after shifting back): how much the result
   depends on where the body sits on the grid -- what no model that sees only relative positions
@@ -49,17 +51,31 @@ from bsms.solver_runs import free_nodes  # noqa: E402
 from datagen import simulate  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 from datagen.refine import subdivide  # noqa: E402
+from datagen.scenes import get_scene  # noqa: E402
+from datagen.scenes.press import background_spacing  # noqa: E402
 
 CHECKS = {
-    "finer mesh": lambda c, t: c["params"].update(mesh_size=c["params"]["mesh_size"] / 2),
+    "finer mesh": lambda c, t: finer_grid(c["params"]),
     "finer mesh and body": lambda c, t: finer_body(c, t),
     "other reference": lambda c, t: c["solver"].update(reference=other_reference(c)),
     "smaller step": lambda c, t: smaller_step(c["solver"]),
     "grid shift": lambda c, t: c["params"].update(box=widened(c["params"])),
 }
 # where a check's run stands against the data's: "grid shift" sets the body down half a cell on
-SHIFTS = {"grid shift": lambda c: np.eye(len(c["params"]["box"]) // 2)[_axis(c["params"])]
-          * c["params"]["mesh_size"] / 2}
+SHIFTS = {"grid shift": lambda c: np.eye(len(c["params"]["box"]) // 2)[_axis(c["params"])] * spacing(c["params"]) / 2}
+
+
+def spacing(params: dict) -> float:
+    """The background spacing a press config ran with: ``mesh_size``, finer where ``grid_ratio``
+    times the body's own spacing is."""
+    return background_spacing(get_scene("press").params(params))
+
+
+def finer_grid(params: dict) -> None:
+    """The background twice as fine: ``mesh_size`` and ``grid_ratio`` (where set) halved."""
+    params.update(mesh_size=params["mesh_size"] / 2)
+    if params.get("grid_ratio"):
+        params.update(grid_ratio=params["grid_ratio"] / 2)
 
 
 def _axis(params: dict) -> int:
@@ -72,7 +88,7 @@ def widened(params: dict) -> list:
     """The box one background cell larger along :func:`_axis`: the body, centred along it, moves
     half a cell against the grid, which starts at the box's lower corner."""
     box = list(params["box"])
-    box[len(box) // 2 + _axis(params)] += params["mesh_size"]
+    box[len(box) // 2 + _axis(params)] += spacing(params)
     return box
 
 
@@ -83,8 +99,8 @@ def finer_body(config: dict, trajectory) -> None:
     fine = subdivide(trajectory.mesh)
     params = config["params"]
     params.pop("char", None)
-    params.update(polygon=None, mesh={"nodes": fine.nodes.tolist(), "cells": fine.cells.tolist()},
-                  mesh_size=params["mesh_size"] / 2)
+    finer_grid(params)  # before the body is given inline: the spacing that follows it stays its own
+    params.update(polygon=None, mesh={"nodes": fine.nodes.tolist(), "cells": fine.cells.tolist()})
 
 
 def smaller_step(solver: dict) -> None:

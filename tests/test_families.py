@@ -8,6 +8,8 @@ import pytest
 from datagen.config import ConfigError
 from datagen.dataset_config import load_dataset_config, trajectory_config
 from datagen.families import FAMILIES, get_family
+from datagen.scenes import get_scene
+from datagen.scenes.press import background_spacing
 from datagen.simulation import simulate
 from datagen.trajectory import NodeType
 
@@ -111,6 +113,22 @@ def test_press_stiff_is_press_kinds_ten_times_stiffer_on_a_twice_finer_backgroun
         assert b["params"]["E"] == pytest.approx(10 * a["params"]["E"], rel=1e-12)
         same = {key: value for key, value in a["params"].items() if key not in ("E", "mesh_size")}
         assert {key: b["params"][key] for key in same} == same and b["seed"] == a["seed"]
+
+
+def test_press_fine_is_press_stiff_on_a_background_that_follows_the_body():
+    """press_fine draws press_stiff's bodies and drives in every split with params.grid_ratio 1.5: a
+    body at body_size (2.5 mm) keeps the 3.75 mm background, a body refined for min_nodes gets a
+    finer one."""
+    stiff, fine = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in ("press_stiff", "press_fine"))
+    assert fine["params"]["grid_ratio"] == 1.5 and fine["splits"] == stiff["splits"]
+    for split, k in [("test", 0), ("test", 2), ("valid", 3), ("train", 0), ("train", 191)]:
+        a, b = trajectory_config(stiff, split, k), trajectory_config(fine, split, k)
+        assert {key: v for key, v in b["params"].items() if key != "grid_ratio"} == a["params"]
+        assert b["seed"] == a["seed"]
+    press = get_scene("press")
+    thin, compact = (press.params(trajectory_config(fine, "test", k)["params"]) for k in (0, 2))  # a J, a polygon
+    assert background_spacing(compact) == 0.00375
+    assert 0.0015 < background_spacing(thin) < 0.002
 
 
 def test_press_multires_meshes_press_stiff_xls_bodies_at_drawn_spacings():

@@ -84,6 +84,26 @@ def test_min_nodes_refines_thin_bodies_only():
     assert wide.body.n_nodes == build(char="M", body_size=0.01).body.n_nodes
 
 
+def test_grid_ratio_gives_a_body_meshed_finer_a_background_as_much_finer():
+    """grid_ratio r: the background spacing is min(mesh_size, r x the body's spacing), the spacing
+    a body refined for min_nodes was meshed at; a body at body_size keeps mesh_size exactly."""
+    given = {"char": "I", "body_size": 0.01, "mesh_size": 0.02, "min_nodes": 400}
+    thin = press.params({**FAST, **given, "grid_ratio": 1.5})
+    scene = press.build(thin)
+    area = float(scene.body.cell_measures.sum())
+    body_spacing = math.sqrt(1.15 * area / 400)  # the min_nodes rule, finer than body_size here
+    assert body_spacing < 0.01
+    assert scene.grid_spacing == pytest.approx(1.5 * body_spacing, rel=1e-9)
+    assert press.background_spacing(thin) == pytest.approx(scene.grid_spacing, rel=1e-9)
+    assert scene.body.n_nodes == build(**given).body.n_nodes  # the body is meshed as without it
+    edges = scene.domain.edge_lengths
+    assert np.median(edges) == pytest.approx(scene.grid_spacing, rel=0.1)  # the background is meshed at it
+    assert build(**given).grid_spacing == 0.02  # grid_ratio 0 (the default): mesh_size
+    wide = build(char="M", body_size=0.01, mesh_size=0.02, grid_ratio=2.5)  # 2.5 x 0.01 > mesh_size
+    assert wide.grid_spacing == 0.02 and wide.domain.n_nodes == build(char="M").domain.n_nodes
+    assert build(char="M", body_size=0.01, mesh_size=0.02, grid_ratio=1.5).grid_spacing == pytest.approx(0.015)
+
+
 def test_polygon_and_mesh_bodies():
     square = [[0, 0], [2, 0], [2, 1], [0, 1]]
     scene = build(polygon=square)
@@ -100,6 +120,7 @@ def test_polygon_and_mesh_bodies():
      "params.indenter_size must list 2 positive length(s) for a box indenter, got [0.02]"),
     ({"angle": 90.0}, "params.angle must lie in [-80, 80] degrees from straight down, got 90.0"),
     ({"gap": -0.1}, "params.gap must be >= 0, got -0.1"),
+    ({"grid_ratio": -1.5}, "params.grid_ratio must be >= 0, got -1.5"),
     ({"pose": "lying"}, "params.pose must be one of ['stable', 'upright'], got 'lying'"),
     ({"char": "AB"}, "params.char must be a single visible character, got 'AB'"),
     ({"polygon": [[0, 0], [1, 0], [0, 1]], "mesh": "x.msh"},

@@ -45,3 +45,32 @@ def test_grid_shift_moves_the_body_and_its_indenter_half_a_cell(base, axis):
     np.testing.assert_allclose(after.obstacle_nodes[indenter] - shift, before.obstacle_nodes[indenter], rtol=0,
                                atol=1e-15)
     assert (after.domain.nodes.min(0) == before.domain.nodes.min(0)).all()  # the grid starts where it did
+
+
+THIN = {**PARAMS, "body_size": 0.01, "min_nodes": 300, "grid_ratio": 1.5}  # a J refined below body_size
+
+
+@pytest.mark.parametrize("name", ["finer mesh", "finer mesh and body"])
+def test_finer_checks_halve_a_background_that_follows_the_body(name):
+    """With params.grid_ratio the background is finer than mesh_size for a thin body: both finer
+    checks halve the spacing the data ran with, not mesh_size alone."""
+    scene = get_scene("press")
+    before = scene.build(scene.params(THIN))
+    assert before.grid_spacing < THIN["mesh_size"] / 2  # so halving mesh_size alone would change nothing
+    config = {"params": dict(THIN)}
+    CHECKS[name](config, SimpleNamespace(mesh=before.body))
+    after = scene.build(scene.params(config["params"]))
+    assert after.grid_spacing == pytest.approx(before.grid_spacing / 2, rel=1e-9)
+
+
+def test_grid_shift_is_half_the_cell_the_body_had():
+    scene = get_scene("press")
+    params = dict(THIN, box=[0.0, 0.0, 0.24, 0.2])
+    before = scene.build(scene.params(params))
+    config = {"params": dict(params)}
+    CHECKS["grid shift"](config, None)
+    after = scene.build(scene.params(config["params"]))
+    shift = SHIFTS["grid shift"](config)
+    assert shift[0] == pytest.approx(before.grid_spacing / 2, rel=1e-9) and shift[1] == 0.0
+    np.testing.assert_allclose(after.body.nodes - shift, before.body.nodes, rtol=0, atol=1e-15)
+    assert after.grid_spacing == pytest.approx(before.grid_spacing, rel=1e-12)

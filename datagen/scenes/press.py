@@ -5,7 +5,9 @@ its vertices) or any 2D mesh (``mesh``: a file path or an inline ``{nodes, cells
 that its largest bounding-box extent is ``size`` and set on the floor of the box at its middle,
 ``lift`` above it, meshed at spacing ``body_size`` (finer if it would get fewer than
 ``min_nodes`` nodes: thin letters stay resolved); a given mesh is kept as it is, or with
-``refine`` subdivided to that resolution, its own nodes first (:func:`refined`). The material
+``refine`` subdivided to that resolution, its own nodes first (:func:`refined`). The background
+mesh has spacing ``mesh_size``, or ``grid_ratio`` times the body's spacing where that is finer
+(:func:`grid_spacing`). The material
 is stiff (megapascals): the explicit solver then needs
 hundreds of substeps per frame, while the motion is slow and smooth -- the setting where a
 learned simulator pays (DeepMind's DEFORMINGPLATE is the same kind of scene).
@@ -58,7 +60,7 @@ DEFAULTS = {
     "settle_damping": 400.0,
     "indenter": "disk", "indenter_size": [0.02], "indenter_x": 0.0, "indenter_friction": 0.3, "gap": 0.002,
     "speed": 0.045, "angle": 0.0, "press_time": 0.2, "hold_time": 0.0, "pose": "upright", "base": "resting",
-    "refine": False,
+    "refine": False, "grid_ratio": 0.0,
 }
 OUTPUT = {"frames": 40, "frame_interval": 0.01}
 SOLVER = {"transfer": "flip"}
@@ -91,7 +93,7 @@ def params(given: dict) -> dict:
         raise ConfigError(f"params.indenter_size must list {want} positive length(s) for a {p['indenter']} "
                           f"indenter, got {sizes!r}")
     for key in ("gap", "lift", "hold_time", "damping", "friction", "indenter_friction", "min_nodes", "settle_time",
-                "settle_damping"):
+                "settle_damping", "grid_ratio"):
         if not p[key] >= 0:
             raise ConfigError(f"params.{key} must be >= 0, got {p[key]!r}")
     if not -80.0 <= p["angle"] <= 80.0:
@@ -163,6 +165,22 @@ def _spacing(p: dict, area: float) -> float:
     return min(p["body_size"], math.sqrt(1.15 * area / p["min_nodes"]))
 
 
+def grid_spacing(p: dict, area: float) -> float:
+    """The background mesh's spacing for a body of ``area``: ``mesh_size``, or ``grid_ratio`` times the
+    body's own spacing (:func:`_spacing`) where that is finer (``grid_ratio`` 0: always ``mesh_size``).
+    A body meshed finer because it is small or thin (``min_nodes``) then gets a grid as much finer, so
+    that every body has about as many particles per cell and its contact with the indenter, which the
+    solver resolves on the background nodes, is as well resolved across its thickness."""
+    if p["grid_ratio"] <= 0:
+        return p["mesh_size"]
+    return min(p["mesh_size"], p["grid_ratio"] * _spacing(p, area))
+
+
+def background_spacing(p: dict) -> float:
+    """The background mesh's spacing :func:`build` uses for the resolved parameters ``p``."""
+    return grid_spacing(p, float(body_mesh(p).cell_measures.sum()))
+
+
 def indenter(p: dict, body: Mesh) -> Collider:
     """The indenter and its path: down along ``angle`` for press_time, hold, and back."""
     sizes = tuple(float(s) for s in p["indenter_size"])
@@ -219,6 +237,7 @@ def refined(p: dict, body: Mesh) -> tuple[Mesh, np.ndarray | None]:
 def build(p: dict) -> Scene:
     lower, upper = box_bounds(p["box"])
     body, given_cells = refined(p, body_mesh(p))
+    spacing = grid_spacing(p, float(body.cell_measures.sum()))
     if p["base"] == "clamped":  # its leftmost points on the left wall, centred in height
         low, high = body.nodes.min(0), body.nodes.max(0)
         shift = np.array([lower[0] - low[0], (lower[1] + upper[1] - low[1] - high[1]) / 2 + p["lift"]])
@@ -229,7 +248,7 @@ def build(p: dict) -> Scene:
         raise ConfigError(f"params.size: the body spans {np.round(np.ptp(body.nodes, axis=0), 6).tolist()}, "
                           f"more than params.box {p['box']} holds; make it smaller or the box larger")
     collider = indenter(p, body)
-    domain = box_domain(lower, upper, p["mesh_size"])
+    domain = box_domain(lower, upper, spacing)
     walls_nodes, walls_facets = outline(domain)
     surface_nodes, surface_facets = collider.surface(p["body_size"])
     gravity = np.array([0.0, -p["gravity"]])
@@ -238,7 +257,7 @@ def build(p: dict) -> Scene:
         domain=domain, body=body, x=body.nodes.copy(), v=np.zeros_like(body.nodes), volume=vertex_volumes(body),
         materials=[(material, None)], tracked=np.arange(body.n_nodes),
         walls=walls(p["base"], p["friction"]),
-        gravity=gravity, grid_spacing=p["mesh_size"],
+        gravity=gravity, grid_spacing=spacing,
         obstacle_nodes=np.concatenate([walls_nodes, surface_nodes]),
         obstacle_facets=np.concatenate([walls_facets, surface_facets + len(walls_nodes)]).astype(np.int64),
         colliders=[collider], collider_nodes=[len(surface_nodes)], damping=float(p["damping"]),
