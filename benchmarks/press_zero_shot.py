@@ -12,7 +12,11 @@ then ends with exactly
 
     zero-shot: vs at rest star A, L bracket B, notched plate C (max M), speedup S0-S1 x
 
+``--scene KEY=VALUE ...`` changes scene parameters as ``bsms.infer``'s ``--scene`` does (e.g.
+``grid_ratio=1.5``: a model trained on one family's data, the solver on another's grid).
+
     python benchmarks/press_zero_shot.py [RUN] [--size 0.004] [--checkpoint best|latest] [--out DIR]
+        [--scene KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from bsms.infer import infer  # noqa: E402
+from bsms.infer import infer, parse_overrides  # noqa: E402
 from datagen import shapes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,7 +54,11 @@ def main(argv=None) -> int:
     parser.add_argument("--size", type=float, default=0.004, help="mesh element size, m (default 0.004)")
     parser.add_argument("--checkpoint", default="best", choices=["best", "latest"])
     parser.add_argument("--out", default=None, help="keep the outputs here (default: a temporary folder)")
+    parser.add_argument("--scene", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="scene parameters over the family's, as bsms.infer's --scene (e.g. grid_ratio=1.5: "
+                             "the solver on another family's grid)")
     args = parser.parse_args(argv)
+    overrides = parse_overrides(args.scene)
     with tempfile.TemporaryDirectory() as scratch:
         out = Path(args.out) if args.out else Path(scratch) / "out"
         names, files = [], []
@@ -59,8 +67,8 @@ def main(argv=None) -> int:
             shapes.polygon(ring, size=args.size).write(str(path))
             names.append(name)
             files.append(str(path))
-        summary = infer(args.run, files, solver=True, separately=True, out=out, which=args.checkpoint,
-                        progress=False)
+        summary = infer(args.run, files, overrides=overrides, solver=True, separately=True, out=out,
+                        which=args.checkpoint, progress=False)
     rows = summary["rollouts"]
     print("| shape | nodes (refined) | RMSE all / body size | at rest / body size | vs at rest "
           "| ms per frame (model, solver) | speed-up |")

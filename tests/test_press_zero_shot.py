@@ -1,0 +1,40 @@
+"""benchmarks/press_zero_shot.py: the shapes it meshes, what it hands bsms.infer, and its last line
+(bsms.infer itself is tested in tests/test_infer.py; here it is replaced by a stand-in)."""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import press_zero_shot  # noqa: E402
+
+from datagen.config import ConfigError  # noqa: E402
+from datagen.scenes.bodies import read_body  # noqa: E402
+
+
+def test_scene_overrides_reach_infer_and_the_last_line_names_every_shape(monkeypatch, capsys):
+    seen = {}
+
+    def fake_infer(run, files, **kwargs):
+        seen.update(run=run, files=files, **kwargs)
+        for path in files:  # meshed at --size (4 mm): a few hundred nodes each
+            assert 300 < read_body(path, 0).n_nodes < 700
+        return {"rollouts": [{"nodes": [100 + k], "body_nodes": 400 + k, "rel_all": 0.001 * (k + 1),
+                              "rest_rel_all": 0.004, "vs_rest": 0.25 * (k + 1), "seconds_per_step": 0.01,
+                              "solver_seconds_per_step": 0.5 + k, "speedup": 50.0 + 100 * k}
+                             for k in range(len(files))]}
+
+    monkeypatch.setattr(press_zero_shot, "infer", fake_infer)
+    assert press_zero_shot.main(["RUN", "--scene", "grid_ratio=1.5", "E=2e7", "--checkpoint", "latest"]) == 0
+    assert seen["run"] == "RUN" and seen["overrides"] == {"grid_ratio": 1.5, "E": 2e7}
+    assert seen["which"] == "latest" and seen["solver"] is True and seen["separately"] is True
+    assert [Path(f).stem for f in seen["files"]] == ["star", "L_bracket", "notched_plate"]
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last == ("zero-shot: vs at rest star 0.25, L bracket 0.5, notched plate 0.75 (max 0.75), "
+                    "speedup 50-250 x")
+
+
+def test_a_scene_override_without_a_value_is_refused():
+    with pytest.raises(ConfigError, match=r"--scene 'grid_ratio' must look like KEY=VALUE"):
+        press_zero_shot.main(["RUN", "--scene", "grid_ratio"])
