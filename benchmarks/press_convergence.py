@@ -24,7 +24,9 @@ For the first ``--trajectories`` files of a split, re-runs each generating confi
   can learn,
 
 and reports how far each moves the stored rollout: RMSE over all frames and free body nodes,
-relative to the body size (the measure the surrogate's accuracy target uses). The data's
+relative to the body size (the measure the surrogate's accuracy target uses), beside the at-rest
+error of the data and of the check's run (how much each deforms: a finer grid that deforms a
+thin body more shows there). The data's
 settings are adequate when the finer mesh stays below the target. Ends with exactly
 ``press convergence: finer mesh rel A (max B), finer mesh and body rel C (max D), <other
 reference> rel E (max F), smaller step rel G (max H), grid shift rel I (max J), target T``
@@ -130,9 +132,20 @@ def check(trajectory, name: str) -> dict:
     other = simulate(config)
     n = trajectory.mesh.n_nodes  # a refined body's own nodes come first
     shift = SHIFTS[name](trajectory.config) if name in SHIFTS else 0.0
-    metrics = rollout_metrics(other.positions[:, :n] - shift, trajectory.positions, free_nodes(trajectory),
-                              body_size(trajectory.mesh.nodes))
-    return {"rel_all": metrics["rel_all"], "seconds": time.perf_counter() - start, "substeps": other.substeps}
+    free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
+    moved = other.positions[:, :n] - shift
+    metrics = rollout_metrics(moved, trajectory.positions, free, size)
+    rest = rollout_metrics(np.broadcast_to(trajectory.mesh.nodes, moved.shape), moved, free, size)
+    return {"rel_all": metrics["rel_all"], "rest_rel_all": rest["rel_all"], "seconds": time.perf_counter() - start,
+            "substeps": other.substeps}
+
+
+def at_rest(trajectory) -> float:
+    """The stored rollout's at-rest error (predicting no motion) relative to the body size: how
+    much the body deforms, the yardstick ``vs at rest`` divides by."""
+    shape = trajectory.positions.shape
+    return rollout_metrics(np.broadcast_to(trajectory.mesh.nodes, shape), trajectory.positions,
+                           free_nodes(trajectory), body_size(trajectory.mesh.nodes))["rel_all"]
 
 
 def main(argv=None) -> None:
@@ -149,16 +162,18 @@ def main(argv=None) -> None:
     if not files:
         raise SystemExit(f"no trajectories in {args.data / args.split}; generate them with python -m datagen")
     results = {name: [] for name in args.checks}
-    print("| trajectory | E (MPa) | data substeps/frame | check | substeps/frame | rel RMSE all | solver s |")
-    print("|---|---|---|---|---|---|---|")
+    print("| trajectory | E (MPa) | data substeps/frame | data at rest | check | substeps/frame | rel RMSE all "
+          "| check's at rest | solver s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for path in files:
         trajectory = load(path)
         for name in args.checks:
             r = check(trajectory, name)
             results[name].append(r["rel_all"])
             print(f"| {path.name} | {trajectory.config['params']['E'] / 1e6:.2f} | {trajectory.substeps} "
-                  f"| {label(name, trajectory.config)} "
-                  f"| {r['substeps']} | {r['rel_all']:.3g} | {r['seconds']:.0f} |", flush=True)
+                  f"| {at_rest(trajectory):.3g} | {label(name, trajectory.config)} "
+                  f"| {r['substeps']} | {r['rel_all']:.3g} | {r['rest_rel_all']:.3g} | {r['seconds']:.0f} |",
+                  flush=True)
     parts = [f"{label(name, trajectory.config)} rel {np.mean(values):.3g} (max {np.max(values):.3g})"
              for name, values in results.items()]
     print(f"press convergence: {', '.join(parts)}, target {args.target:g}")

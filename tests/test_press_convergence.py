@@ -10,7 +10,7 @@ import pytest
 from datagen.scenes import get_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from press_convergence import CHECKS, SHIFTS, finer_body  # noqa: E402
+from press_convergence import CHECKS, SHIFTS, at_rest, finer_body  # noqa: E402
 
 PARAMS = {"char": "J", "size": 0.1, "pose": "stable", "body_size": 0.004, "mesh_size": 0.0075}
 
@@ -74,3 +74,15 @@ def test_grid_shift_is_half_the_cell_the_body_had():
     assert shift[0] == pytest.approx(before.grid_spacing / 2, rel=1e-9) and shift[1] == 0.0
     np.testing.assert_allclose(after.body.nodes - shift, before.body.nodes, rtol=0, atol=1e-15)
     assert after.grid_spacing == pytest.approx(before.grid_spacing, rel=1e-12)
+
+
+def test_at_rest_is_the_rms_displacement_over_free_nodes_and_frames_relative_to_the_body_size():
+    """A 3 x 4 rectangle's nodes: frame 0 at rest (not a step), frame 1 moved by (0.3, 0.4) (|d| = 0.5),
+    frame 2 by (0.6, 0.8) (|d| = 1), a fixed node whose motion does not count: sqrt((0.25 + 1) / 2)
+    over the diagonal 5."""
+    nodes = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 4.0], [0.0, 4.0]])
+    positions = np.stack([nodes, nodes + [0.3, 0.4], nodes + [0.6, 0.8]])
+    positions[1:, 3] += 10.0  # node 3 is not free
+    node_type = np.array([0, 0, 0, 1])
+    trajectory = SimpleNamespace(mesh=SimpleNamespace(nodes=nodes), positions=positions, node_type=node_type)
+    assert at_rest(trajectory) == pytest.approx(np.sqrt(1.25 / 2) / 5.0, rel=1e-12)
