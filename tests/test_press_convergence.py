@@ -85,4 +85,4 @@ def test_at_rest_is_the_rms_displacement_over_free_nodes_and_frames_relative_to_
     positions[1:, 3] += 10.0  # node 3 is not free
     node_type = np.array([0, 0, 0, 1])
     trajectory = SimpleNamespace(mesh=SimpleNamespace(nodes=nodes), positions=positions, node_type=node_type)
-    assert at_rest(trajectory) == pytest.approx(np.sqrt(1.25 / 2) / 5.0, rel=1e-12)
+    assert at_rest(positions, trajectory) == pytest.approx(np.sqrt(1.25 / 2) / 5.0, rel=1e-12)

@@ -236,8 +236,9 @@ def refined(p: dict, body: Mesh) -> tuple[Mesh, np.ndarray | None]:
 
 def build(p: dict) -> Scene:
     lower, upper = box_bounds(p["box"])
-    body, given_cells = refined(p, body_mesh(p))
-    spacing = grid_spacing(p, float(body.cell_measures.sum()))
+    given = body_mesh(p)
+    spacing = grid_spacing(p, float(given.cell_measures.sum()))  # as background_spacing(p) says
+    body, given_cells = refined(p, given)
     if p["base"] == "clamped":  # its leftmost points on the left wall, centred in height
         low, high = body.nodes.min(0), body.nodes.max(0)
         shift = np.array([lower[0] - low[0], (lower[1] + upper[1] - low[1] - high[1]) / 2 + p["lift"]])
