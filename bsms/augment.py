@@ -31,7 +31,7 @@ __all__ = ["mirrored", "trajectories", "random_rotation", "rotated", "ROTATED_FI
 
 # The vector fields of a graph on its level-0 nodes (bsms.level_graph.LevelGraph) that turn with it;
 # everything else in a graph is a scalar, an index, or derived from these by the model.
-ROTATED_FIELDS = ("pos", "rest_pos", "velocity", "target", "penetration", "clearance")
+ROTATED_FIELDS = ("pos", "rest_pos", "velocity", "target", "penetration", "clearance", "elastic")
 
 
 def mirrored(trajectory, source: str = "the trajectory"):

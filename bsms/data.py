@@ -21,6 +21,7 @@ from bsms.augment import random_rotation, rotated, trajectories
 from bsms.config import ConfigError
 from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, type_codes, world_positions
 from bsms.graph import bistride_levels
+from bsms.graph.elastic import ElasticResponse
 from bsms.graph.frames import SubHierarchy
 from bsms.graph.obstacles import ObstacleReach, Subdivision, facet_edges, subdivide_obstacles
 from bsms.graph.penetration import Clearance, Penetration
@@ -87,7 +88,8 @@ def _with_obstacles(rest, edges, node_type, body_id, obstacle_nodes, obstacle_fa
 
 def _obstacle_input(kind, wanted: bool, rest, geometry: Subdivision | None, n_body: int, source: str, *args):
     """The scenario's ``kind`` (:class:`Penetration` for ``graph.penetration``, :class:`Clearance`
-    for ``graph.clearance``) where ``wanted``; None without obstacle geometry."""
+    for ``graph.clearance``, :class:`ElasticResponse` for ``graph.elastic``) where ``wanted``; None
+    without obstacle geometry."""
     if not wanted or geometry is None:
         return None
     try:
@@ -131,6 +133,7 @@ class Scenario:
     obstacle_geometry: Subdivision | None = field(default=None, repr=False)
     penetration: Penetration | None = field(default=None, repr=False)
     clearance: Clearance | None = field(default=None, repr=False)
+    elastic: ElasticResponse | None = field(default=None, repr=False)
     loss_weight: float | None = field(default=None, repr=False)
 
     @classmethod
@@ -157,6 +160,8 @@ class Scenario:
             options.contact_distance
         reach = None if options.obstacle_margin is None else radius + options.obstacle_margin * edge_length
         clearance = _obstacle_input(Clearance, options.clearance, rest, geometry, n_body, source, radius)
+        elastic = _obstacle_input(ElasticResponse, options.elastic, rest, geometry, n_body, source, mesh.cells,
+                                  (params or {}).get("nu"), edge_length)
         return cls(
             rest_pos=rest, node_type=node_type, body_id=body_id, edges=edges, cells=mesh.cells, n_body=n_body,
             hierarchy=hierarchy, constants=constants, frame_dt=float(frame_dt), contact_radius=radius,
@@ -165,7 +170,7 @@ class Scenario:
                                 excluded=None if clearance is None else clearance.excluded),
             type_codes=None if type_codes is None else np.asarray(type_codes, np.int64), obstacle_geometry=geometry,
             penetration=_obstacle_input(Penetration, options.penetration, rest, geometry, n_body, source),
-            clearance=clearance,
+            clearance=clearance, elastic=elastic,
         )
 
     @classmethod
@@ -246,8 +251,11 @@ class Scenario:
         if self.options.penetration:
             pos = np.asarray(pos, np.float64)
             coming = pos + self.frame_dt * np.asarray(velocity, np.float64)  # kinematic rows: their coming step
-            arrays["penetration"] = self.penetration(pos, coming, self.node_type == NodeType.FREE)[nodes] \
-                if self.penetration is not None else np.zeros((len(nodes), pos.shape[1]))
+            penetration = self.penetration(pos, coming, self.node_type == NodeType.FREE) \
+                if self.penetration is not None else np.zeros_like(pos)
+            arrays["penetration"] = penetration[nodes]
+            if self.options.elastic:
+                arrays["elastic"] = (self.elastic(penetration) if self.elastic is not None else penetration * 0)[nodes]
         if self.options.clearance:
             arrays["clearance"] = self.clearance(np.asarray(pos, np.float64), self.node_type == NodeType.FREE)[nodes] \
                 if self.clearance is not None else np.zeros((len(nodes), np.shape(pos)[1]))

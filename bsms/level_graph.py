@@ -34,7 +34,7 @@ _NODE_FIELDS = {
     "rest_pos": torch.float32, "pos": torch.float32, "velocity": torch.float32, "node_type": torch.long,
     "target": torch.float32, "loss_mask": torch.bool, "constants": torch.float32, "frame_dt": torch.float32,
     "scenario_nodes": torch.long, "fields": torch.float32, "type_code": torch.long,
-    "penetration": torch.float32, "clearance": torch.float32, "loss_weight": torch.float32,
+    "penetration": torch.float32, "clearance": torch.float32, "elastic": torch.float32, "loss_weight": torch.float32,
 }
 
 

@@ -83,6 +83,12 @@ class GraphOptions:
         penetration input saturates (a node deep inside sees the nearest side, not the depth) and
         contact edges reach only the rest shape near where the indenter is; this tells every
         node near it the whole travel.
+    elastic: every node also gets, as an input, the body's first-order answer to the push: the
+        linear-elastic displacement of its rest mesh (held where it touches the container, E = 1,
+        the scene's Poisson ratio ``nu``) under forces along the penetration vectors, scaled to
+        match them where they act (:mod:`bsms.graph.elastic`) -- how far a push moves the far end
+        of a thin arm, which the network would otherwise infer from the mesh alone. Needs
+        ``penetration`` (its loads) and simplex body meshes.
     """
 
     levels: int = 4
@@ -102,6 +108,7 @@ class GraphOptions:
     penetration: bool = False
     clearance: bool = False
     drive: bool = False
+    elastic: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
         if self.displacement and not self.quasi_static:
@@ -114,6 +121,9 @@ class GraphOptions:
             raise ConfigError(f"config key '{prefix}.drive' tells a model that predicts from rest how far the drive "
                               f"has moved the obstacles; set '{prefix}.from_rest: true' too, or "
                               f"'{prefix}.drive: false'")
+        if self.elastic and not self.penetration:
+            raise ConfigError(f"config key '{prefix}.elastic' loads the body where the obstacles reach into it; set "
+                              f"'{prefix}.penetration: true' too, or '{prefix}.elastic: false'")
         if self.clearance and not self.obstacles:
             raise ConfigError(f"config key '{prefix}.clearance' stands in for the container's obstacle nodes; set "
                               f"'{prefix}.obstacles: true' too, or '{prefix}.clearance: false'")

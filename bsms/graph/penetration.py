@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from bsms.graph.obstacles import KeptTree
 
 __all__ = ["Penetration", "Clearance", "outlines", "winding_numbers", "inside_outline", "closest_points",
-           "solid_winding_numbers", "closest_points_3d"]
+           "solid_winding_numbers", "closest_points_3d", "closest_on_facets"]
 
 
 def winding_numbers(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -122,7 +122,9 @@ def _inside(points, corners) -> np.ndarray:
     return np.abs(solid_winding_numbers(points, *corners)) > 0.5
 
 
-def _closest(points, corners):
+def closest_on_facets(points: np.ndarray, corners: list[np.ndarray]) -> np.ndarray:
+    """(P, d) the point of the facets whose corners are ``corners`` (d arrays (S, d): segments in
+    2D, triangles in 3D) nearest each of ``points`` (P, d)."""
     return closest_points(points, *corners) if len(corners) == 2 else closest_points_3d(points, *corners)
 
 
@@ -134,7 +136,8 @@ def outlines(rest: np.ndarray, facets: np.ndarray, n_body: int,
     is a container when it encloses most of the body's rest nodes (the walls around the body).
     ValueError naming ``what`` (the option that asked) where the facets do not fit the dimension."""
     dim = rest.shape[1]
-    facets = np.asarray(facets, np.int64).reshape(len(facets), -1)
+    facets = np.asarray(facets, np.int64)
+    facets = facets.reshape(len(facets), -1) if facets.size else np.zeros((0, dim), np.int64)
     if dim not in (2, 3) or (len(facets) and facets.shape[1] != dim):
         raise ValueError(f"{what} needs closed obstacle outlines of {dim}-node facets in a {dim}D scene (segments "
                          f"in 2D, triangles in 3D), got facets of {facets.shape[1]} nodes")
@@ -175,7 +178,7 @@ class Penetration:
             near = points[np.all((pos[points] >= low) & (pos[points] <= high), axis=1)]  # only these can be inside
             inside = near[_inside(pos[near], corners)]
             if len(inside):
-                out[inside] += _closest(pos[inside], corners) - pos[inside]
+                out[inside] += closest_on_facets(pos[inside], corners) - pos[inside]
         return out
 
 
@@ -215,7 +218,7 @@ class Clearance:
             if len(near):
                 reach, _ = cKDTree(pos[near]).query(sum(corners) / len(corners), distance_upper_bound=bound)
                 facets = np.isfinite(reach)  # only the facets within reach of these nodes
-                offset = _closest(pos[near], [c[facets] for c in corners]) - pos[near]
+                offset = closest_on_facets(pos[near], [c[facets] for c in corners]) - pos[near]
                 close = np.linalg.norm(offset, axis=1) <= self.radius
                 out[near[close]] = offset[close]
         self._last = (key, np.array(free, copy=True), out.copy())

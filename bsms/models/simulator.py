@@ -66,8 +66,10 @@ class LearnedSimulator(nn.Module):
         penetration: the graphs carry ``penetration`` (N, d), appended to the node inputs
             (``graph.penetration``, :mod:`bsms.graph.penetration`).
         clearance: the graphs carry ``clearance`` (N, d), appended after it (``graph.clearance``).
-        drive: every node's displacement from rest, pos - rest_pos (N, d), appended last
+        drive: every node's displacement from rest, pos - rest_pos (N, d), appended after them
             (``graph.drive``: with ``graph.from_rest``, how far the drive has moved the obstacles).
+        elastic: the graphs carry ``elastic`` (N, d), the body's linear-elastic answer to the
+            penetration loads, appended last (``graph.elastic``, :mod:`bsms.graph.elastic`).
         latent: width of the latents.
         n_passes: message passes of meshgraphnets.
         hidden_layers: hidden layers of every MLP.
@@ -79,7 +81,7 @@ class LearnedSimulator(nn.Module):
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
                  core_options: dict | None = None, fields: FieldSpec | None = None, penetration: bool = False,
-                 clearance: bool = False, drive: bool = False):
+                 clearance: bool = False, drive: bool = False, elastic: bool = False):
         super().__init__()
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
@@ -88,8 +90,9 @@ class LearnedSimulator(nn.Module):
             raise ValueError(f"the field spec ({spec.describe()}) does not fit dim={dim}, contact={contact}")
         self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
-        self.penetration, self.clearance, self.drive = penetration, clearance, drive
-        node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance) + int(drive))
+        self.penetration, self.clearance, self.drive, self.elastic = penetration, clearance, drive, elastic
+        node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance) + int(drive)
+                                                                     + int(elastic))
         edge_dims = [spec.mesh_edge_dim] + ([spec.contact_edge_dim] if contact else [])
         self.core = build_core(core, node_in, spec.node_out, edge_dims, n_levels=n_levels, latent=latent,
                                n_passes=n_passes, hidden_layers=hidden_layers, options=dict(core_options or {}))
@@ -123,6 +126,11 @@ class LearnedSimulator(nn.Module):
                 parts.append(graph[name])
         if self.drive:
             parts.append(graph.pos - graph.rest_pos)
+        if self.elastic:
+            if "elastic" not in graph:
+                raise ValueError("the model reads the body's elastic answer to the push ('elastic', graph.elastic), "
+                                 "which this graph lacks; build it with graph.elastic: true")
+            parts.append(graph.elastic)
         return torch.cat(parts, dim=-1)
 
     def _level(self, graph: LevelGraph, l: int, accumulate: bool) -> Level:

@@ -1,0 +1,152 @@
+"""How the whole body answers a push, to first order: the node input of ``graph.elastic``.
+
+An indenter pressing on a thin arm moves the arm's far end; a graph network that sees only the
+rest shape and where the obstacle reaches into it has to work out from the mesh alone how
+stiff each part of the body is and how it is held. This module computes the first-order answer
+outright, on the body's rest mesh, with linear elasticity (P1 triangles in 2D, plane strain; P1
+tetrahedra in 3D), E = 1 and the scene's Poisson ratio:
+
+- the body is *held* where it touches the container (the walls around it, as
+  :func:`bsms.graph.penetration.outlines` tells them): nodes within ``HOLD`` median rest edges of
+  a wall are fixed -- a base bonded to the floor, a clamp;
+- the load is the penetration input (:class:`bsms.graph.penetration.Penetration`): each free
+  node inside an obstacle gets a force along the vector that would put it back on the
+  obstacle's surface, weighted by its share of the body's area (volume), ``f_i = m_i p_i``;
+- the response ``u = K^-1 f`` is scaled by the one factor ``a`` that best matches the loaded
+  nodes' displacements to their penetration vectors (least squares): ``a u``. The scale, and so
+  Young's modulus, drops out: the input is a displacement field in world units.
+
+Prescribing every penetrating node onto the obstacle's surface instead (a bilateral
+displacement condition) over-constrains the body -- a solver's contact lets it sink in by part
+of a cell and slide -- and matched the press family's test split worse (0.68 of the at-rest
+error on average, against 0.59 for the scaled load; docs/press.md). A tiny multiple of the
+stiffness' diagonal keeps a body that nothing holds solvable (it then mostly follows the load
+rigidly). The stiffness is factorised once per scenario, on first use (each process its own);
+a frame costs one sparse triangular solve pair.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse.linalg import splu
+
+from bsms.graph.penetration import closest_on_facets, outlines
+
+__all__ = ["HOLD", "REGULARISATION", "stiffness", "nodal_measures", "held_nodes", "ElasticResponse"]
+
+# nodes within this many median rest edges of the container are held: the row on a bonded floor
+# and the nodes just above it, which a solver's sticky grid holds too (on press_stiff's test split
+# 0.05 edges left a J's linear answer at 0.79 of its at-rest error, 1 edge at 0.22; docs/press.md)
+HOLD = 1.0
+# K + REGULARISATION * mean(diag K) * I: solvable when nothing holds the body, negligible otherwise
+REGULARISATION = 1e-9
+
+
+def _gradients(rest: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, d+1, d) gradients of each cell's barycentric coordinates and (T,) cell measures."""
+    corners = rest[cells]  # (T, d+1, d)
+    edges = corners[:, 1:] - corners[:, :1]  # (T, d, d): rows are edge vectors
+    det = np.linalg.det(edges)
+    if np.any(np.abs(det) <= np.finfo(float).tiny):
+        raise ValueError("graph.elastic: the body mesh has a degenerate cell (zero area or volume)")
+    inner = np.linalg.inv(edges).transpose(0, 2, 1)  # (T, d, d): row k is the gradient of coordinate k+1
+    grads = np.concatenate([-inner.sum(1, keepdims=True), inner], axis=1)
+    return grads, np.abs(det) / math.factorial(rest.shape[1])
+
+
+def stiffness(rest: np.ndarray, cells: np.ndarray, nu: float) -> sparse.csc_matrix:
+    """(dN, dN) stiffness of linear elasticity with E = 1 and Poisson ratio ``nu`` on the simplex
+    mesh ``rest`` (N, d), ``cells`` (T, d+1) (plane strain in 2D). Dof ``d i + k`` is node i's
+    displacement along axis k. K[a i, b j] = sum over cells of measure (lam g_ai g_bj +
+    mu (g_aj g_bi + delta_ij g_a . g_b)), g the barycentric gradients."""
+    if not 0.0 <= nu < 0.5:
+        raise ValueError(f"graph.elastic needs a Poisson ratio in [0, 0.5), got nu = {nu}; give the scene a "
+                         "compressible material")
+    rest, cells = np.asarray(rest, np.float64), np.asarray(cells, np.int64)
+    n, dim = rest.shape
+    lam, mu = nu / ((1 + nu) * (1 - 2 * nu)), 1.0 / (2 * (1 + nu))
+    g, measure = _gradients(rest, cells)
+    eye = np.eye(dim)
+    block = (lam * np.einsum("tai,tbj->tabij", g, g) + mu * np.einsum("taj,tbi->tabij", g, g)
+             + mu * np.einsum("tak,tbk,ij->tabij", g, g, eye)) * measure[:, None, None, None, None]
+    dofs = (dim * cells[:, :, None] + np.arange(dim)).reshape(len(cells), -1)  # (T, (d+1) d), node-major
+    local = block.transpose(0, 1, 3, 2, 4).reshape(len(cells), dofs.shape[1], dofs.shape[1])
+    rows = np.repeat(dofs, dofs.shape[1], axis=1).ravel()
+    cols = np.tile(dofs, (1, dofs.shape[1])).ravel()
+    return sparse.csc_matrix((local.ravel(), (rows, cols)), shape=(dim * n, dim * n))
+
+
+def nodal_measures(rest: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(N,) each node's share of the mesh's area (volume): a cell's measure split evenly among its corners."""
+    _, measure = _gradients(np.asarray(rest, np.float64), np.asarray(cells, np.int64))
+    return np.bincount(np.asarray(cells).ravel(), np.repeat(measure / cells.shape[1], cells.shape[1]), len(rest))
+
+
+def held_nodes(rest: np.ndarray, facets: np.ndarray, n_body: int, tolerance: float) -> np.ndarray:
+    """(H,) the body nodes (of the first ``n_body`` of ``rest``) within ``tolerance`` of the container's
+    facets (scenario node indices; :func:`bsms.graph.penetration.outlines`)."""
+    _, containers = outlines(rest, facets, n_body, "graph.elastic")
+    if not containers:
+        return np.zeros(0, np.int64)
+    walls = np.concatenate(containers)
+    corners = [rest[walls[:, i]] for i in range(walls.shape[1])]
+    body = rest[:n_body]
+    distance = np.linalg.norm(closest_on_facets(body, corners) - body, axis=1)
+    return np.flatnonzero(distance <= tolerance)
+
+
+class ElasticResponse:
+    """The elastic input of one scenario.
+
+    rest: (N, d) rest positions of all scenario nodes, the first ``n_body`` the body's; facets:
+    (F, d) obstacle facets in scenario node indices (the container among them holds the body);
+    cells: (T, d+1) the body's simplices; nu: the scene's Poisson ratio (a number; ValueError
+    otherwise); edge_length: the body's median rest edge (the hold tolerance is ``HOLD`` of it)."""
+
+    def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int, cells: np.ndarray, nu, edge_length: float):
+        if not isinstance(nu, (int, float)) or isinstance(nu, bool):
+            raise ValueError(f"graph.elastic needs the material's Poisson ratio: the scene has no numeric parameter "
+                             f"'nu' (got {nu!r}); give the scene params a 'nu', or set graph.elastic: false")
+        rest = np.asarray(rest, np.float64)
+        self.n_body, self.dim = int(n_body), rest.shape[1]
+        if np.asarray(cells).shape[1] != self.dim + 1:
+            raise ValueError(f"graph.elastic needs a simplex body mesh ({self.dim + 1}-node cells in "
+                             f"{self.dim}D), got cells of {np.asarray(cells).shape[1]} nodes")
+        self.stiffness = stiffness(rest[:n_body], cells, nu)
+        self.measures = nodal_measures(rest[:n_body], cells)
+        self.held = held_nodes(rest, facets, n_body, HOLD * edge_length)
+        keep = np.ones(self.dim * self.n_body, bool)
+        keep[(self.dim * self.held[:, None] + np.arange(self.dim)).ravel()] = False
+        self.free_dofs = np.flatnonzero(keep)
+        self._factor = None
+
+    def __getstate__(self):  # a factorisation does not pickle: each process makes its own
+        return {**self.__dict__, "_factor": None}
+
+    def _solver(self):
+        if self._factor is None:
+            k = self.stiffness[self.free_dofs][:, self.free_dofs]
+            shift = REGULARISATION * float(k.diagonal().mean()) if k.shape[0] else 0.0
+            self._factor = splu((k + shift * sparse.identity(k.shape[0], format="csc")).tocsc())
+        return self._factor
+
+    def __call__(self, penetration: np.ndarray) -> np.ndarray:
+        """(N, d) for ``penetration`` (N, d) of all scenario nodes (0 outside the obstacles): the
+        body's scaled response ``a u`` on its nodes, 0 on the others (and everywhere when no body
+        node is loaded or nothing is free to move)."""
+        out = np.zeros(np.shape(penetration), np.float64)
+        p = np.asarray(penetration, np.float64)[: self.n_body]
+        loaded = np.flatnonzero(np.any(p != 0, axis=1))
+        if not len(loaded) or not len(self.free_dofs):
+            return out
+        force = (self.measures[:, None] * p).ravel()
+        u = np.zeros(self.dim * self.n_body)
+        u[self.free_dofs] = self._solver().solve(force[self.free_dofs])
+        u = u.reshape(self.n_body, self.dim)
+        fit = float((u[loaded] ** 2).sum())
+        if fit > 0:
+            out[: self.n_body] = u * (float((u[loaded] * p[loaded]).sum()) / fit)
+        return out
