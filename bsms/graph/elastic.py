@@ -21,8 +21,9 @@ displacement condition) over-constrains the body -- a solver's contact lets it s
 of a cell and slide -- and matched the press family's test split worse (0.68 of the at-rest
 error on average, against 0.59 for the scaled load; docs/press.md). A tiny multiple of the
 stiffness' diagonal keeps a body that nothing holds solvable (it then mostly follows the load
-rigidly). The stiffness is factorised once per scenario, on first use (each process its own);
-a frame costs one sparse triangular solve pair.
+rigidly). The stiffness is factorised once per scenario, when it is built (with its hierarchy:
+mesh preprocessing, outside a learned frame's time; a process that unpickles a scenario makes
+its own on first use); a frame costs one sparse triangular solve pair.
 """
 
 from __future__ import annotations
@@ -104,9 +105,11 @@ class ElasticResponse:
     rest: (N, d) rest positions of all scenario nodes, the first ``n_body`` the body's; facets:
     (F, d) obstacle facets in scenario node indices (the container among them holds the body);
     cells: (T, d+1) the body's simplices; nu: the scene's Poisson ratio (a number; ValueError
-    otherwise); edge_length: the body's median rest edge (the hold tolerance is ``HOLD`` of it)."""
+    otherwise); edge_length: the body's median rest edge; hold: nodes within this many of it from
+    the container are held."""
 
-    def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int, cells: np.ndarray, nu, edge_length: float):
+    def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int, cells: np.ndarray, nu, edge_length: float,
+                 hold: float = HOLD):
         if not isinstance(nu, (int, float)) or isinstance(nu, bool):
             raise ValueError(f"graph.elastic needs the material's Poisson ratio: the scene has no numeric parameter "
                              f"'nu' (got {nu!r}); give the scene params a 'nu', or set graph.elastic: false")
@@ -117,11 +120,12 @@ class ElasticResponse:
                              f"{self.dim}D), got cells of {np.asarray(cells).shape[1]} nodes")
         self.stiffness = stiffness(rest[:n_body], cells, nu)
         self.measures = nodal_measures(rest[:n_body], cells)
-        self.held = held_nodes(rest, facets, n_body, HOLD * edge_length)
+        self.held = held_nodes(rest, facets, n_body, hold * edge_length)
         keep = np.ones(self.dim * self.n_body, bool)
         keep[(self.dim * self.held[:, None] + np.arange(self.dim)).ravel()] = False
         self.free_dofs = np.flatnonzero(keep)
         self._factor = None
+        self._solver()  # with the hierarchy, once per mesh: a frame only solves
 
     def __getstate__(self):  # a factorisation does not pickle: each process makes its own
         return {**self.__dict__, "_factor": None}
@@ -130,7 +134,9 @@ class ElasticResponse:
         if self._factor is None:
             k = self.stiffness[self.free_dofs][:, self.free_dofs]
             shift = REGULARISATION * float(k.diagonal().mean()) if k.shape[0] else 0.0
-            self._factor = splu((k + shift * sparse.identity(k.shape[0], format="csc")).tocsc())
+            # symmetric positive definite: an ordering of K + K^T and no pivoting off the diagonal
+            self._factor = splu((k + shift * sparse.identity(k.shape[0], format="csc")).tocsc(),
+                                permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
         return self._factor
 
     def __call__(self, penetration: np.ndarray) -> np.ndarray:
