@@ -223,3 +223,23 @@ def test_training_with_the_elastic_input_runs(tiny_dataset, tmp_path, one_thread
                                          train={"steps": 4, "valid_every": 4}))
     summary = Trainer(config, dataset_folder=prepare_dataset(config, progress=False)).fit()
     assert np.isfinite(summary["loss"])
+
+
+def test_a_3d_body_is_held_on_its_floor_and_answers_the_push():
+    from test_penetration import CUBE_FACES, cube
+
+    nodes, cells = kuhn_tetrahedra(3)  # the unit cube, its bottom face on the container's floor z = 0
+    n_body = len(nodes)
+    rest = np.concatenate([nodes, cube((-1.0, -1.0, 0.0), (2.0, 2.0, 2.0))])
+    edge = 1.0 / 3
+    elastic = ElasticResponse(rest, CUBE_FACES + n_body, n_body, cells, 0.25, edge)
+    np.testing.assert_array_equal(elastic.held, np.flatnonzero(nodes[:, 2] <= HOLD * edge + 1e-12))
+    assert len(elastic.held) == 32  # the two lowest layers of 4 x 4 nodes
+    push = np.zeros_like(rest)
+    top = np.flatnonzero((nodes[:, 2] == 1.0) & (np.abs(nodes[:, :2] - 0.5).max(1) < 0.2))
+    push[top] = [0.0, 0.0, -0.01]
+    out = elastic(push)
+    assert not out[elastic.held].any() and not out[n_body:].any()
+    u, p = out[top], push[top]
+    np.testing.assert_allclose((u * (p - u)).sum(), 0.0, atol=1e-12 * (p * p).sum())
+    assert (out[top, 2] < 0).all() and np.abs(out[:n_body]).max() == np.abs(out[top]).max()
