@@ -7,7 +7,7 @@ frame of the known drive at once), on one thread, ``--repeats`` times after one 
 runs alternate (A B C A B C ...) so that load drift hits all alike, and each figure is the
 median over repeats. Timers wrap, per call, the stages of a frame's graph -- the obstacles within
 reach and the contacts (``reach``), contact edges carried to every level (``contacts``), the
-penetration and clearance inputs -- the whole frame's arrays (``frame arrays``), the network
+penetration, clearance and elastic inputs -- the whole frame's arrays (``frame arrays``), the network
 (``network``: :meth:`~bsms.models.simulator.LearnedSimulator.velocity_change` on the joined graph
 of a call, its features included) and the rollout as a whole (``total``, per frame; what the
 evaluation's speed-up divides by). Frame arrays minus its stages is the rest of the graph's
@@ -42,7 +42,7 @@ from bsms.learned_rollouts import learned_rollouts  # noqa: E402
 from bsms.run import dataset_folder, load_model, split_files  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 
-STAGES = ("reach", "contacts", "penetration", "clearance", "frame arrays", "network")
+STAGES = ("reach", "contacts", "penetration", "clearance", "elastic", "frame arrays", "network")
 
 
 TOTALS: dict = defaultdict(float)  # seconds per stage of the pass under way
@@ -69,7 +69,7 @@ class _TimedScenario:
         self._scenario = scenario
         scenario.reach.frame = _Timed(scenario.reach.frame, "reach")
         scenario.levels.contacts = _Timed(scenario.levels.contacts, "contacts")
-        for name in ("penetration", "clearance"):
+        for name in ("penetration", "clearance", "elastic"):
             if getattr(scenario, name) is not None:
                 setattr(scenario, name, _Timed(getattr(scenario, name), name))
         self.frame = _Timed(scenario.frame, "frame arrays")

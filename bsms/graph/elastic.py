@@ -18,8 +18,8 @@ tetrahedra in 3D), E = 1 and the scene's Poisson ratio:
 
 Prescribing every penetrating node onto the obstacle's surface instead (a bilateral
 displacement condition) over-constrains the body -- a solver's contact lets it sink in by part
-of a cell and slide -- and matched the press family's test split worse (0.68 of the at-rest
-error on average, against 0.59 for the scaled load; docs/press.md). A tiny multiple of the
+of a cell and slide -- and matched the press family's test split worse in a first comparison
+(docs/press.md, "The body's first-order answer"). A tiny multiple of the
 stiffness' diagonal keeps a body that nothing holds solvable (it then mostly follows the load
 rigidly). The stiffness is factorised once per scenario, when it is built (with its hierarchy:
 mesh preprocessing, outside a learned frame's time; a process that unpickles a scenario makes
@@ -40,7 +40,8 @@ __all__ = ["HOLD", "REGULARISATION", "stiffness", "nodal_measures", "held_nodes"
 
 # nodes within this many median rest edges of the container are held: the row on a bonded floor
 # and the nodes just above it, which a solver's sticky grid holds too (on press_stiff's test split
-# 0.05 edges left a J's linear answer at 0.79 of its at-rest error, 1 edge at 0.22; docs/press.md)
+# 0.05 edges left a J's answer at 0.79 of its at-rest error, 1 edge at 0.22:
+# benchmarks/elastic_answer.py --hold, docs/press.md)
 HOLD = 1.0
 # K + REGULARISATION * mean(diag K) * I: solvable when nothing holds the body, negligible otherwise
 REGULARISATION = 1e-9
