@@ -54,6 +54,10 @@ class _Timed:
     def __init__(self, function, name: str):
         self.function, self.name = function, name
 
+    def __getattr__(self, attribute):  # the object's other methods (ElasticResponse.many), timed alike
+        value = getattr(self.function, attribute)
+        return _Timed(value, self.name) if callable(value) else value
+
     def __call__(self, *args, **kwargs):
         start = time.perf_counter()
         try:
@@ -73,6 +77,7 @@ class _TimedScenario:
             if getattr(scenario, name) is not None:
                 setattr(scenario, name, _Timed(getattr(scenario, name), name))
         self.frame = _Timed(scenario.frame, "frame arrays")
+        self.frames = _Timed(scenario.frames, "frame arrays")  # a rollout's frames of one track at once
 
     def __getattr__(self, name):
         return getattr(self._scenario, name)

@@ -221,12 +221,31 @@ class Scenario:
                              f"of shape {body_positions.shape}: give both for the same frames")
         return np.concatenate([body_positions, moved], axis=-2)
 
+    def frames(self, states: list[tuple[np.ndarray, np.ndarray]]) -> list[FrameArrays]:
+        """:meth:`frame` of each ``(pos, velocity)`` of ``states``; with ``graph.elastic`` the
+        elastic answers of all of them in one solve (:meth:`ElasticResponse.many`)."""
+        if not self.options.elastic or self.elastic is None:
+            return [self.frame(pos, velocity) for pos, velocity in states]
+        loads = [self._penetration(pos, velocity) for pos, velocity in states]
+        answers = self.elastic.many(loads)
+        return [self.frame(pos, velocity, inputs=(load, answer))
+                for (pos, velocity), load, answer in zip(states, loads, answers, strict=True)]
+
+    def _penetration(self, pos: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+        """(N, d) the penetration input of every scenario node (0 without obstacle outlines)."""
+        pos = np.asarray(pos, np.float64)
+        if self.penetration is None:
+            return np.zeros_like(pos)
+        coming = pos + self.frame_dt * np.asarray(velocity, np.float64)  # kinematic rows: their coming step
+        return self.penetration(pos, coming, self.node_type == NodeType.FREE)
+
     def frame(self, pos: np.ndarray, velocity: np.ndarray, target: np.ndarray | None = None,
-              fields: np.ndarray | None = None) -> FrameArrays:
+              fields: np.ndarray | None = None, inputs: tuple | None = None) -> FrameArrays:
         """The graph of one state in numpy: ``pos``, ``velocity`` (and ``target``) (N, d) of all
         scenario nodes (Eulerian data: the fixed mesh, zero, and ``fields`` (N, k) the node
         inputs of :mod:`bsms.fields`); it holds the body nodes and the obstacle nodes within reach of them
-        (``nodes["scenario_nodes"]``: the scenario node of each graph node, sorted)."""
+        (``nodes["scenario_nodes"]``: the scenario node of each graph node, sorted). ``inputs``: the
+        penetration and elastic answer (N, d) of every scenario node, already computed (:meth:`frames`)."""
         chosen, contacts = self.reach.frame(np.asarray(pos, np.float64))
         present = self.levels.closure(chosen)
         levels, keep, local = self.levels.levels(present)
@@ -249,13 +268,12 @@ class Scenario:
         if len(self.constants):
             arrays["constants"] = np.broadcast_to(self.constants, (len(nodes), len(self.constants)))
         if self.options.penetration:
-            pos = np.asarray(pos, np.float64)
-            coming = pos + self.frame_dt * np.asarray(velocity, np.float64)  # kinematic rows: their coming step
-            penetration = self.penetration(pos, coming, self.node_type == NodeType.FREE) \
-                if self.penetration is not None else np.zeros_like(pos)
+            penetration, answer = (self._penetration(pos, velocity), None) if inputs is None else inputs
             arrays["penetration"] = penetration[nodes]
             if self.options.elastic:
-                arrays["elastic"] = (self.elastic(penetration) if self.elastic is not None else penetration * 0)[nodes]
+                if answer is None:
+                    answer = self.elastic(penetration) if self.elastic is not None else np.zeros_like(penetration)
+                arrays["elastic"] = answer[nodes]
         if self.options.clearance:
             arrays["clearance"] = self.clearance(np.asarray(pos, np.float64), self.node_type == NodeType.FREE)[nodes] \
                 if self.clearance is not None else np.zeros((len(nodes), np.shape(pos)[1]))

@@ -115,12 +115,16 @@ class _Track:
         if self.states is not None:
             fields = self.spec.input_values(self.states[t])
             return self.scenario.frame(self.positions[t], self.velocities[t], fields=fields)
+        return self.scenario.frame(*self.state(t))
+
+    def state(self, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """(positions, velocities) frame t's graph is built from (Lagrangian, see :meth:`frame`)."""
         velocity, kinematic = self._input(t), self.scenario.kinematic
         if kinematic.any():
             velocity = velocity.copy()
             velocity[kinematic] = 0.0 if self.known is None else \
                 (self.known[t + 1][kinematic] - self.positions[t][kinematic]) / self.scenario.frame_dt
-        return self.scenario.frame(self._origin(t), velocity)
+        return self._origin(t), velocity
 
     def _origin(self, t: int) -> np.ndarray:
         """Where frame t's graph puts the nodes and its step starts from: frame t, or the rest
@@ -201,10 +205,25 @@ def _track(scenario: Scenario, x0: np.ndarray, v0: np.ndarray, steps: int, known
                   known_states=known_states)
 
 
+def _frames(jobs: list[tuple[_Track, int]]) -> list:
+    """The graph arrays of each job's frame, in order; a Lagrangian track's frames in one call of
+    :meth:`Scenario.frames` (the elastic answers of all of them in one solve)."""
+    out, by_track = [None] * len(jobs), {}
+    for i, (track, _) in enumerate(jobs):
+        by_track.setdefault(id(track), []).append(i)
+    for indices in by_track.values():
+        track = jobs[indices[0]][0]
+        built = [track.frame(jobs[i][1]) for i in indices] if track.states is not None else \
+            track.scenario.frames([track.state(jobs[i][1]) for i in indices])
+        for i, frame in zip(indices, built, strict=True):
+            out[i] = frame
+    return out
+
+
 def _changes(model, jobs: list[tuple[_Track, int]], device: torch.device, precision: str) -> list[np.ndarray]:
     """One model call on the graphs of ``jobs`` ((track, frame) pairs) as one batch -> per job the
     (N_k, d) velocity changes of every scenario node (zero on nodes outside the frame's graph)."""
-    frames = [k.frame(t) for k, t in jobs]
+    frames = _frames(jobs)
     change = model.velocity_change(level_graph(frames).to(device), precision=precision).double().cpu().numpy()
     out, start = [], 0
     for (k, t), frame in zip(jobs, frames, strict=True):

@@ -243,3 +243,23 @@ def test_a_3d_body_is_held_on_its_floor_and_answers_the_push():
     u, p = out[top], push[top]
     np.testing.assert_allclose((u * (p - u)).sum(), 0.0, atol=1e-12 * (p * p).sum())
     assert (out[top, 2] < 0).all() and np.abs(out[:n_body]).max() == np.abs(out[top]).max()
+
+
+def test_frames_built_together_solve_once_and_equal_frames_built_alone():
+    scenario, rest, facets, n_body, punch = _scenario(penetration=True, elastic=True)
+    states = []
+    for depth in (0.0, 0.1, 0.15, 0.2):  # the punch starts 0.05 above the body
+        velocity = np.zeros_like(rest)
+        velocity[punch] = [0.0, -10 * depth]  # the punch's coming step
+        states.append((scenario.rest_pos, velocity))
+    solves = []
+    factor = scenario.elastic._solver()
+    scenario.elastic._factor = type("Counted", (), {"solve": lambda self, b: solves.append(b.shape) or factor.solve(b)})()
+    together = scenario.frames(states)
+    assert solves == [(len(scenario.elastic.free_dofs), 3)], "one solve for the three loaded frames"
+    alone = [scenario.frame(*state) for state in states]
+    for a, b in zip(together, alone, strict=True):
+        assert a.nodes.keys() == b.nodes.keys()
+        np.testing.assert_array_equal(a.nodes["penetration"], b.nodes["penetration"])
+        np.testing.assert_allclose(a.nodes["elastic"], b.nodes["elastic"], rtol=0, atol=1e-15)
+    assert not together[0].nodes["elastic"].any() and np.abs(together[-1].nodes["elastic"]).max() > 0.01

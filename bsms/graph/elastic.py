@@ -144,16 +144,24 @@ class ElasticResponse:
         """(N, d) for ``penetration`` (N, d) of all scenario nodes (0 outside the obstacles): the
         body's scaled response ``a u`` on its nodes, 0 on the others (and everywhere when no body
         node is loaded or nothing is free to move)."""
-        out = np.zeros(np.shape(penetration), np.float64)
-        p = np.asarray(penetration, np.float64)[: self.n_body]
-        loaded = np.flatnonzero(np.any(p != 0, axis=1))
-        if not len(loaded) or not len(self.free_dofs):
+        return self.many([penetration])[0]
+
+    def many(self, penetrations: list[np.ndarray]) -> list[np.ndarray]:
+        """:meth:`__call__` of each of ``penetrations``, with one solve for all of them (a solve
+        of many right-hand sides costs about half as much per right-hand side as one alone)."""
+        out = [np.zeros(np.shape(p), np.float64) for p in penetrations]
+        loads = [np.asarray(p, np.float64)[: self.n_body] for p in penetrations]
+        active = [k for k, p in enumerate(loads) if np.any(p != 0)]
+        if not active or not len(self.free_dofs):
             return out
-        force = (self.measures[:, None] * p).ravel()
-        u = np.zeros(self.dim * self.n_body)
-        u[self.free_dofs] = self._solver().solve(force[self.free_dofs])
-        u = u.reshape(self.n_body, self.dim)
-        fit = float((u[loaded] ** 2).sum())
-        if fit > 0:
-            out[: self.n_body] = u * (float((u[loaded] * p[loaded]).sum()) / fit)
+        forces = np.stack([(self.measures[:, None] * loads[k]).ravel()[self.free_dofs] for k in active], axis=1)
+        solved = self._solver().solve(forces)
+        for column, k in enumerate(active):
+            u = np.zeros(self.dim * self.n_body)
+            u[self.free_dofs] = solved[:, column]
+            u, p = u.reshape(self.n_body, self.dim), loads[k]
+            loaded = np.any(p != 0, axis=1)
+            fit = float((u[loaded] ** 2).sum())
+            if fit > 0:
+                out[k][: self.n_body] = u * (float((u[loaded] * p[loaded]).sum()) / fit)
         return out
