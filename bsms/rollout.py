@@ -117,6 +117,13 @@ class _Track:
             return self.scenario.frame(self.positions[t], self.velocities[t], fields=fields)
         return self.scenario.frame(*self.state(t))
 
+    def frames(self, ts: list[int]) -> list:
+        """:meth:`frame` of each of ``ts``; a Lagrangian track's in one call of
+        :meth:`Scenario.frames` (the elastic answers of all of them in one solve)."""
+        if self.states is not None:
+            return [self.frame(t) for t in ts]
+        return self.scenario.frames([self.state(t) for t in ts])
+
     def state(self, t: int) -> tuple[np.ndarray, np.ndarray]:
         """(positions, velocities) frame t's graph is built from (Lagrangian, see :meth:`frame`)."""
         velocity, kinematic = self._input(t), self.scenario.kinematic
@@ -206,16 +213,14 @@ def _track(scenario: Scenario, x0: np.ndarray, v0: np.ndarray, steps: int, known
 
 
 def _frames(jobs: list[tuple[_Track, int]]) -> list:
-    """The graph arrays of each job's frame, in order; a Lagrangian track's frames in one call of
-    :meth:`Scenario.frames` (the elastic answers of all of them in one solve)."""
+    """The graph arrays of each job's frame, in order, each track's frames built together
+    (:meth:`_Track.frames`)."""
     out, by_track = [None] * len(jobs), {}
     for i, (track, _) in enumerate(jobs):
         by_track.setdefault(id(track), []).append(i)
     for indices in by_track.values():
         track = jobs[indices[0]][0]
-        built = [track.frame(jobs[i][1]) for i in indices] if track.states is not None else \
-            track.scenario.frames([track.state(jobs[i][1]) for i in indices])
-        for i, frame in zip(indices, built, strict=True):
+        for i, frame in zip(indices, track.frames([jobs[i][1] for i in indices]), strict=True):
             out[i] = frame
     return out
 
