@@ -89,6 +89,9 @@ class GraphOptions:
         match them where they act (:mod:`bsms.graph.elastic`) -- how far a push moves the far end
         of a thin arm, which the network would otherwise infer from the mesh alone. Needs
         ``penetration`` (its loads) and simplex body meshes.
+    elastic_residual: with ``elastic`` and ``from_rest``, the network learns the correction to that
+        answer: its target is the displacement less the answer (over the frame interval), and the
+        answer is added back to its output. Where the answer is right, the network's part is 0.
     """
 
     levels: int = 4
@@ -109,6 +112,7 @@ class GraphOptions:
     clearance: bool = False
     drive: bool = False
     elastic: bool = False
+    elastic_residual: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
         if self.displacement and not self.quasi_static:
@@ -124,6 +128,10 @@ class GraphOptions:
         if self.elastic and not self.penetration:
             raise ConfigError(f"config key '{prefix}.elastic' loads the body where the obstacles reach into it; set "
                               f"'{prefix}.penetration: true' too, or '{prefix}.elastic: false'")
+        if self.elastic_residual and not (self.elastic and self.from_rest):
+            raise ConfigError(f"config key '{prefix}.elastic_residual' corrects the elastic answer of a model that "
+                              f"predicts from rest; set '{prefix}.elastic: true' and '{prefix}.from_rest: true' too, "
+                              f"or '{prefix}.elastic_residual: false'")
         if self.clearance and not self.obstacles:
             raise ConfigError(f"config key '{prefix}.clearance' stands in for the container's obstacle nodes; set "
                               f"'{prefix}.obstacles: true' too, or '{prefix}.clearance: false'")

@@ -263,3 +263,46 @@ def test_frames_built_together_solve_once_and_equal_frames_built_alone():
         np.testing.assert_array_equal(a.nodes["penetration"], b.nodes["penetration"])
         np.testing.assert_allclose(a.nodes["elastic"], b.nodes["elastic"], rtol=0, atol=1e-15)
     assert not together[0].nodes["elastic"].any() and np.abs(together[-1].nodes["elastic"]).max() > 0.01
+
+
+def test_a_residual_model_adds_the_answer_and_learns_the_rest():
+    torch.manual_seed(0)
+    model = LearnedSimulator("bsms_gnn", 2, n_levels=2, contact=True, latent=8, penetration=True, elastic=True,
+                             elastic_residual=True)
+    plain = LearnedSimulator("bsms_gnn", 2, n_levels=2, contact=True, latent=8, penetration=True, elastic=True)
+    plain.load_state_dict(model.state_dict())
+    scenario, rest, facets, n_body, punch = _scenario(penetration=True, elastic=True)
+    velocity = np.zeros_like(scenario.rest_pos)
+    velocity[punch] = [0.0, -1.2]
+    target = np.zeros_like(scenario.rest_pos)
+    target[:n_body] = 0.3  # any target: the residual model's own is the target less the answer over dt
+    graph = scenario.graph(scenario.rest_pos, velocity, target)
+    free = (graph.node_type == NodeType.FREE)[:, None]
+    answer = torch.where(free, graph.elastic.float() / 0.1, torch.zeros_like(graph.elastic.float()))
+    assert answer.abs().max() > 0.1
+    torch.testing.assert_close(model.velocity_change(graph), plain.velocity_change(graph) + answer,
+                               rtol=0, atol=1e-6)
+    torch.testing.assert_close(model.learned_target(graph), graph.target - answer, rtol=0, atol=0)
+    model.output_normalizer.accumulate(torch.randn(50, 2))
+    plain.output_normalizer.accumulate(torch.randn(50, 2))
+    plain.output_normalizer.load_state_dict(model.output_normalizer.state_dict())
+    prediction = model(graph)  # the loss of the residual model is the plain model's on the target less the answer
+    shifted = graph.clone()
+    shifted.target = graph.target - answer
+    torch.testing.assert_close(model.prediction_loss(prediction, graph), plain.prediction_loss(prediction, shifted))
+    with pytest.raises(ValueError, match=r"^elastic_residual corrects the elastic answer: the model needs "
+                                         r"elastic=True too$"):
+        LearnedSimulator("bsms_gnn", 2, penetration=True, elastic_residual=True)
+    with pytest.raises(ConfigError, match=r"^config key 'graph.elastic_residual' corrects the elastic answer of a "
+                                          r"model that predicts from rest; set 'graph.elastic: true' and "
+                                          r"'graph.from_rest: true' too"):
+        GraphOptions(penetration=True, elastic=True, elastic_residual=True).validate()
+
+
+def test_training_a_residual_model_runs(tiny_dataset, tmp_path, one_thread):
+    config = load_config(tiny_run_config(tiny_dataset, tmp_path, graph={"penetration": True, "elastic": True,
+                                                                        "from_rest": True, "elastic_residual": True},
+                                         noise={"position": 0.0, "velocity": 0.0},
+                                         train={"steps": 4, "valid_every": 4}))
+    summary = Trainer(config, dataset_folder=prepare_dataset(config, progress=False)).fit()
+    assert np.isfinite(summary["loss"])

@@ -70,6 +70,10 @@ class LearnedSimulator(nn.Module):
             (``graph.drive``: with ``graph.from_rest``, how far the drive has moved the obstacles).
         elastic: the graphs carry ``elastic`` (N, d), the body's linear-elastic answer to the
             penetration loads, appended last (``graph.elastic``, :mod:`bsms.graph.elastic`).
+        elastic_residual: the network outputs the correction to that answer: the free nodes'
+            output is the elastic answer over the frame interval plus the network's (normalised
+            against the target less that answer; ``graph.elastic_residual``, a model predicting
+            from rest). Needs ``elastic``.
         latent: width of the latents.
         n_passes: message passes of meshgraphnets.
         hidden_layers: hidden layers of every MLP.
@@ -81,8 +85,11 @@ class LearnedSimulator(nn.Module):
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
                  core_options: dict | None = None, fields: FieldSpec | None = None, penetration: bool = False,
-                 clearance: bool = False, drive: bool = False, elastic: bool = False):
+                 clearance: bool = False, drive: bool = False, elastic: bool = False,
+                 elastic_residual: bool = False):
         super().__init__()
+        if elastic_residual and not elastic:
+            raise ValueError("elastic_residual corrects the elastic answer: the model needs elastic=True too")
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
         spec = FieldSpec.lagrangian(dim) if fields is None else fields
@@ -91,6 +98,7 @@ class LearnedSimulator(nn.Module):
         self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
         self.penetration, self.clearance, self.drive, self.elastic = penetration, clearance, drive, elastic
+        self.elastic_residual = elastic_residual
         node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance) + int(drive)
                                                                      + int(elastic))
         edge_dims = [spec.mesh_edge_dim] + ([spec.contact_edge_dim] if contact else [])
@@ -196,24 +204,47 @@ class LearnedSimulator(nn.Module):
         :meth:`forward`.
         """
         if accumulate:
-            self.output_normalizer.accumulate(graph.target[graph.loss_mask])
+            self.output_normalizer.accumulate(self.learned_target(graph)[graph.loss_mask])
         return self.prediction_loss(self(graph, accumulate, precision), graph, reduction)
 
     def prediction_loss(self, prediction: Tensor, graph: LevelGraph, reduction: str = "mean") -> Tensor:
         """The loss of :meth:`loss` of a ``prediction`` (N, node_out) already made of ``graph``
         (multi-step training, :mod:`bsms.unroll`, goes on from the prediction it scores)."""
-        error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)
+        error = (prediction - self.output_normalizer(self.learned_target(graph))).square().sum(dim=-1)
         if "loss_weight" in graph:  # train.loss_weight (bsms.data.FrameDataset)
             error = error * graph.loss_weight
         error = error[graph.loss_mask]
         return error.sum() if reduction == "sum" else error.mean()
+
+    def baseline(self, graph: LevelGraph) -> Tensor | None:
+        """(N, d) what the output adds to the network's on free nodes, in the target's units:
+        the elastic answer over the frame interval (``elastic_residual``), else None."""
+        if not self.elastic_residual:
+            return None
+        if "elastic" not in graph:
+            raise ValueError("the model corrects the body's elastic answer to the push ('elastic', graph.elastic), "
+                             "which this graph lacks; build it with graph.elastic: true")
+        free = (graph.node_type == NodeType.FREE)[:, None]
+        return torch.where(free, graph.elastic.float() / graph.frame_dt[:, None], torch.zeros_like(graph.elastic))
+
+    def learned_target(self, graph: LevelGraph) -> Tensor:
+        """The target less :meth:`baseline`: what the network itself is trained to output."""
+        base = self.baseline(graph)
+        return graph.target if base is None else graph.target - base
+
+    def physical(self, prediction: Tensor, graph: LevelGraph) -> Tensor:
+        """The network's normalised ``prediction`` on ``graph`` in physical units, the
+        :meth:`baseline` added (non-free nodes as the network gives them)."""
+        change = self.output_normalizer.inverse(prediction)
+        base = self.baseline(graph)
+        return change if base is None else change + base
 
     @torch.no_grad()
     def velocity_change(self, graph: LevelGraph, precision: str = "f32") -> Tensor:
         """(N, node_out) predicted outputs in physical units (zero on non-free nodes), float32:
         the velocity change of Lagrangian data, the spec's outputs of Eulerian data (the name
         predates specs); precision: as in :meth:`forward`."""
-        change = self.output_normalizer.inverse(self(graph, precision=precision))
+        change = self.physical(self(graph, precision=precision), graph)
         return torch.where((graph.node_type == NodeType.FREE)[:, None], change, torch.zeros_like(change))
 
     output = velocity_change
