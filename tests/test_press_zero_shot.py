@@ -4,12 +4,14 @@
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import press_zero_shot  # noqa: E402
 
 from datagen.config import ConfigError  # noqa: E402
+from datagen.scenes.base import vertex_volumes  # noqa: E402
 from datagen.scenes.bodies import read_body  # noqa: E402
 
 
@@ -38,3 +40,28 @@ def test_scene_overrides_reach_infer_and_the_last_line_names_every_shape(monkeyp
 def test_a_scene_override_without_a_value_is_refused():
     with pytest.raises(ConfigError, match=r"--scene 'grid_ratio' must look like KEY=VALUE"):
         press_zero_shot.main(["RUN", "--scene", "grid_ratio"])
+
+
+def test_the_wide_set_meshes_sixteen_bodies_with_their_holes_and_names_the_worst(monkeypatch, capsys):
+    seen = {}
+
+    def fake_infer(run, files, **kwargs):
+        seen["files"] = files
+        meshes = [read_body(path, 0) for path in files]
+        seen["areas"] = [float(vertex_volumes(m).sum()) for m in meshes]
+        return {"rollouts": [{"nodes": [100], "body_nodes": 400, "rel_all": 0.001, "rest_rel_all": 0.004,
+                              "vs_rest": 0.1 + 0.05 * k, "seconds_per_step": 0.01, "solver_seconds_per_step": 0.5,
+                              "speedup": 40.0 + k} for k in range(len(files))]}
+
+    monkeypatch.setattr(press_zero_shot, "infer", fake_infer)
+    assert press_zero_shot.main(["RUN", "--shapes", "wide"]) == 0
+    names = [Path(f).stem for f in seen["files"]]
+    assert len(names) == 16 and names[:3] == ["star", "L_bracket", "notched_plate"]
+    area = dict(zip(names, seen["areas"], strict=True))
+    np.testing.assert_allclose(area["plate_with_hole"], 0.12 * 0.09 - 32 / 2 * 0.02**2 * np.sin(2 * np.pi / 32),
+                               rtol=1e-9)
+    np.testing.assert_allclose(area["ring"], 48 / 2 * 0.055**2 * np.sin(2 * np.pi / 48)
+                               - 40 / 2 * 0.03**2 * np.sin(2 * np.pi / 40), rtol=1e-9)
+    np.testing.assert_allclose(area["L_bracket"], 0.11 * 0.035 * 2 - 0.035**2, rtol=1e-9)
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last == "zero-shot: vs at rest mean 0.475 on 16 shapes, above 0.5 on 7 (max 0.85, ring), speedup 40-55 x"
