@@ -75,12 +75,15 @@ def test_sampling_is_seeded_and_differs_between_indices():
     assert trajectory_config(dconfig, "train", 3) != trajectory_config(dconfig, "test", 3)
 
 
-@pytest.mark.parametrize(("base", "factor"), [("press_deep", 2), ("press_quickstart", 2), ("bracket", 3), ("press_stiff", 2)])
-def test_the_xl_datasets_only_add_training_trajectories(base, factor):
-    """press_deep_xl, press_quickstart_xl, bracket_xl and press_stiff_xl only add training trajectories: the trajectories each
-    shares with its base are the same simulations (its config tells users to hard-link them), and
-    the rest are new."""
-    small, large = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in (base, f"{base}_xl"))
+@pytest.mark.parametrize(("base", "grown", "factor"), [("press_deep", "press_deep_xl", 2),
+                                                      ("press_quickstart", "press_quickstart_xl", 2),
+                                                      ("bracket", "bracket_xl", 3), ("press_stiff", "press_stiff_xl", 2),
+                                                      ("press_stiff_xl", "press_stiff_xxl", 1.5)])
+def test_the_xl_datasets_only_add_training_trajectories(base, grown, factor):
+    """press_deep_xl, press_quickstart_xl, bracket_xl, press_stiff_xl and press_stiff_xxl only add training
+    trajectories: the trajectories each shares with its base are the same simulations (its config
+    tells users to hard-link them), and the rest are new."""
+    small, large = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in (base, grown))
     assert {k: v for k, v in large.items() if k not in ("dataset", "splits")} == \
         {k: v for k, v in small.items() if k not in ("dataset", "splits")}
     assert large["splits"]["train"] == factor * small["splits"]["train"]
