@@ -9,13 +9,18 @@ trajectory, its mean, the RMSE over all steps relative to the body size), then e
 
     ensemble: vs at rest E of the mean of N runs, each R0-R1
 
-    python benchmarks/ensemble.py RUN RUN [RUN ...] [--split test] [--trajectories 8] [--checkpoint latest]
+``--data FOLDER`` scores the runs on another dataset folder of their family (e.g. the shapes of no
+split that ``benchmarks/zero_shot_set.py`` stores); one run is then enough (no mean row).
+
+    python benchmarks/ensemble.py RUN [RUN ...] [--split test] [--trajectories 8] [--checkpoint latest]
+        [--data FOLDER]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -51,11 +56,13 @@ def main(argv=None) -> int:
     parser.add_argument("--split", default="test")
     parser.add_argument("--trajectories", type=int, default=None, help="at most this many (default: all)")
     parser.add_argument("--checkpoint", default="latest", choices=["best", "latest"])
+    parser.add_argument("--data", type=Path, default=None,
+                        help="score on this dataset folder (default: the first run's dataset)")
     args = parser.parse_args(argv)
-    if len(args.runs) < 2:
-        parser.error("give at least two runs to average")
+    if len(args.runs) < 2 and args.data is None:
+        parser.error("give at least two runs to average (or --data FOLDER to score one)")
     models = [load_model(run, args.checkpoint) for run in args.runs]
-    folder, _ = dataset_folder(args.runs[0], models[0][1])
+    folder = args.data if args.data is not None else dataset_folder(args.runs[0], models[0][1])[0]
     files = split_files(folder, args.split)[: args.trajectories]
     trajectories = [load(path) for path in files]
     spec = models[0][0].spec
@@ -72,6 +79,9 @@ def main(argv=None) -> int:
         scored = [score(p, t, spec) for p, t in zip(positions, trajectories, strict=True)]
         each.append(np.mean([m["vs_rest"] for m in scored]))
         print(row(config.name, scored), flush=True)
+    if len(models) == 1:
+        print(f"ensemble: vs at rest {each[0]:.3g} of 1 run on {folder}")
+        return 0
     mean = [score(np.mean([p[k] for p in predictions], axis=0), t, spec) for k, t in enumerate(trajectories)]
     print(row(f"mean of {len(args.runs)}", mean))
     print(f"ensemble: vs at rest {np.mean([m['vs_rest'] for m in mean]):.3g} of the mean of {len(args.runs)} runs, "

@@ -37,3 +37,21 @@ def test_the_mean_of_one_run_twice_is_that_run_and_of_two_runs_is_scored_alike(t
     assert mean <= sum(runs) / 2 + 2e-3  # printed to 3 digits
     with pytest.raises(SystemExit):
         ensemble.main([first])
+
+
+def test_one_run_scored_on_another_folder_matches_its_rows_on_its_own(tiny_dataset, tiny_folder, tmp_path, capsys):
+    import shutil
+
+    from bsms.run import split_files
+
+    first = train(tiny_dataset, tmp_path, "a", 0)
+    assert ensemble.main([first, first, "--trajectories", "2"]) == 0
+    own = capsys.readouterr().out.strip().splitlines()[2]
+    other = tmp_path / "elsewhere"
+    (other / "test").mkdir(parents=True)
+    for path in split_files(tiny_folder, "test")[:2]:
+        shutil.copy(path, other / "test" / path.name)
+    assert ensemble.main([first, "--data", str(other)]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[2] == own and len(lines) == 4
+    assert lines[-1] == f"ensemble: vs at rest {float(own.split('|')[2].split()[0]):.3g} of 1 run on {other}"

@@ -78,7 +78,7 @@ def test_sampling_is_seeded_and_differs_between_indices():
 @pytest.mark.parametrize(("base", "grown", "factor"), [("press_deep", "press_deep_xl", 2),
                                                       ("press_quickstart", "press_quickstart_xl", 2),
                                                       ("bracket", "bracket_xl", 3), ("press_stiff", "press_stiff_xl", 2),
-                                                      ("press_stiff_xl", "press_stiff_xxl", 1.5)])
+                                                      ("press_stiff_xl", "press_stiff_xxl", 1.25)])
 def test_the_xl_datasets_only_add_training_trajectories(base, grown, factor):
     """press_deep_xl, press_quickstart_xl, bracket_xl, press_stiff_xl and press_stiff_xxl only add training
     trajectories: the trajectories each shares with its base are the same simulations (its config
