@@ -202,11 +202,18 @@ def with_empty_contacts(levels: list[Level], level: int) -> list[Level]:
     return [changed if l == level else lv for l, lv in enumerate(levels)]
 
 
-@pytest.mark.parametrize("index", [0, 1])
+def lean_model(hidden_layers: int) -> BSMSGNN:
+    """BSMS-GNN without LayerNorm: its edge MLPs end in a Linear, applied to each receiver's sum."""
+    torch.manual_seed(1)
+    return BSMSGNN(5, 2, EDGE_DIMS, n_levels=3, latent=32, hidden=32, hidden_layers=hidden_layers, layer_norm=False)
+
+
+@pytest.mark.parametrize("index", [0, 1, "lean1", "lean2"])
 def test_split_message_passing_equals_the_concatenated_form(index, monkeypatch):
     """Node products gathered per edge (mesh edges: E > N), gathered inputs (contacts: E < N) and
-    an empty edge set give the concatenated form's outputs and gradients to float32 round-off."""
-    model = make_models()[index]
+    an empty edge set give the concatenated form's outputs and gradients to float32 round-off; so
+    does an edge MLP's last Linear applied to each receiver's sum of its inputs (no LayerNorm)."""
+    model = lean_model(int(index[-1])) if isinstance(index, str) else make_models()[index]
     g = torch.Generator().manual_seed(6)
     levels = with_empty_contacts(random_levels([30, 14, 6], g), 1)
     x = torch.randn(30, 5, generator=g)
@@ -230,6 +237,45 @@ def test_split_message_passing_equals_the_concatenated_form(index, monkeypatch):
     for name, grad in reference_grads.items():
         torch.testing.assert_close(split_grads[name], grad, rtol=0, atol=9e-6 * float(grad.abs().max()) + 1e-12,
                                    msg=lambda m, name=name: f"gradient of {name}: {m}")
+
+
+def test_a_final_edge_linear_runs_once_per_receiver_not_per_edge():
+    """Without LayerNorm the edge MLPs' last Linear never sees the (E, H) per-edge rows: its
+    module is not called, its weights act on the (N, H) sums (with LayerNorm it is called per edge)."""
+    g = torch.Generator().manual_seed(2)
+    levels, x = random_levels([30, 14, 6], g), torch.randn(30, 5, generator=g)
+    for model, calls_expected in ((lean_model(1), 0), (make_models()[0], None)):
+        calls = []
+        for name, module in model.named_modules():
+            if ".edge_mlps." in name and isinstance(module, nn.Linear) and not name.endswith(".0"):
+                module.register_forward_hook(lambda m, args, out, calls=calls: calls.append(args[0].shape[0]))
+        model(x, levels)
+        if calls_expected is None:
+            assert calls and all(rows in (3 * 30, 3 * 14, 3 * 6, 15, 7, 3) for rows in calls), calls
+        else:
+            assert len(calls) == calls_expected, calls
+
+
+def test_sorted_transitions_equal_the_unsorted_sum():
+    """Triplets sorted by row are summed as weighted bags; the same triplets shuffled take the
+    per-triplet path: equal sums (to float32 round-off) and gradients, rows without triplets 0."""
+    g = torch.Generator().manual_seed(3)
+    rows = torch.sort(torch.randint(0, 40, (300,), generator=g)).values
+    rows = rows[rows != 7]  # an empty row, and the last rows likely empty too
+    cols = torch.randint(0, 90, rows.shape, generator=g)
+    weights = torch.rand(rows.shape, generator=g)
+    shuffle = torch.randperm(rows.numel(), generator=g)
+    v = torch.randn(90, 16, generator=g, requires_grad=True)
+    outs, grads = [], []
+    for order in (torch.arange(rows.numel()), shuffle):
+        out = apply_transition(v, Transition(rows[order], cols[order], weights[order], (45, 90)))
+        (grad,) = torch.autograd.grad(out.square().sum(), v)
+        outs.append(out.detach()), grads.append(grad)
+    reference = torch.zeros(45, 16).index_add_(0, rows, v.detach()[cols] * weights[:, None])
+    assert torch.equal(outs[0][7], torch.zeros(16)) and torch.equal(outs[0][40:], torch.zeros(5, 16))
+    torch.testing.assert_close(outs[0], reference, rtol=0, atol=2e-6)
+    torch.testing.assert_close(outs[1], reference, rtol=0, atol=2e-6)
+    torch.testing.assert_close(grads[0], grads[1], rtol=0, atol=4e-6)
 
 
 def test_split_blocks_keep_the_concatenated_parameters():

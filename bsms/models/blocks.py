@@ -9,7 +9,10 @@ split by columns as [W_e | W_r | W_s] it equals W_e e_ij + (W_r v)_i + (W_s v)_j
 node products W_r v and W_s v are computed once per node and gathered per edge (an edge set
 with fewer edges than nodes gathers v first instead), so the same parameters do the same
 computation with fewer multiplications; the node MLP's first layer on [v, sum e^1, ...] is
-split the same way. The parameters and state_dict keys are those of the concatenated form.
+split the same way. An edge MLP that ends in a Linear (no LayerNorm after it) has its messages
+summed per receiver before that layer: sum_j (W h_ij + b) = W (sum_j h_ij) + deg_i b, one
+product per node instead of one per edge. The parameters and state_dict keys are those of the
+concatenated form.
 """
 
 from __future__ import annotations
@@ -55,6 +58,22 @@ def edge_first_layer(linear: nn.Linear, features: Tensor, v: Tensor, index: Tens
         out = torch.addmm(linear.bias, gathered, weight[:, f:].T)
     # addmm_ works in place, where autocast casts nothing: the edge term joins in the node terms' dtype
     return out.addmm_(features.to(out.dtype), weight[:, :f].T.to(out.dtype))
+
+
+def summed_messages(edge_mlp: nn.Sequential, features: Tensor, v: Tensor, index: Tensor) -> Tensor:
+    """``sum_per_receiver(edge_mlp_messages(edge_mlp, features, v, index), receivers, N)``, (N, out);
+    an MLP whose last layer is a Linear after others gets it applied once per node, to the sums
+    of its inputs (exact up to float round-off, and so are its gradients)."""
+    receivers, n_nodes = index[1], v.shape[0]
+    hidden = edge_first_layer(edge_mlp[0], features, v, index)
+    last = edge_mlp[-1]
+    if len(edge_mlp) == 1 or not isinstance(last, nn.Linear):
+        return sum_per_receiver(after_first_layer(edge_mlp, hidden), receivers, n_nodes)
+    for layer in islice(edge_mlp, 1, len(edge_mlp) - 1):
+        hidden = layer(hidden)
+    summed = sum_per_receiver(hidden, receivers, n_nodes)
+    degree = torch.bincount(receivers, minlength=n_nodes).to(summed.dtype)[:, None]
+    return torch.addmm(degree * last.bias.to(summed.dtype), summed, last.weight.T.to(summed.dtype))
 
 
 def node_first_layer(linear: nn.Linear, v: Tensor, aggregated: list[Tensor | None]) -> Tensor:
@@ -120,8 +139,7 @@ class MessagePassingBlock(nn.Module):
             if _skippable(index):
                 aggregated.append(None)
                 continue
-            messages = edge_mlp_messages(edge_mlp, features, v, index)
-            aggregated.append(sum_per_receiver(messages, index[1], v.shape[0]))
+            aggregated.append(summed_messages(edge_mlp, features, v, index))
         return v + node_update(self.node_mlp, v, aggregated)
 
 

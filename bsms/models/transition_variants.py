@@ -55,10 +55,18 @@ _MIN_DISTANCE = 1e-18
 
 
 def apply_transition(v: Tensor, transition: Transition) -> Tensor:
-    """(n_in, H) -> (n_out, H): out_r = sum over triplets (r, c, w) of w * v_c (thesis §4.3.2)."""
+    """(n_in, H) -> (n_out, H): out_r = sum over triplets (r, c, w) of w * v_c (thesis §4.3.2).
+
+    Triplets sorted by row (every pattern a hierarchy or a frame builds) are summed as one
+    weighted bag per row (``embedding_bag``: gather, weigh and sum in one pass); others are
+    gathered, weighed and added per triplet. Both give the same sums up to float round-off."""
+    rows, weights = transition.rows, transition.weights.to(v.dtype)
+    if rows.numel() and bool((rows[1:] >= rows[:-1]).all()):
+        counts = torch.bincount(rows, minlength=transition.shape[0])
+        starts = counts.cumsum(0) - counts  # each row's first triplet
+        return nn.functional.embedding_bag(transition.cols, v, starts, mode="sum", per_sample_weights=weights)
     out = v.new_zeros(transition.shape[0], v.shape[1])
-    weights = transition.weights.to(v.dtype)[:, None]
-    return out.index_add_(0, transition.rows, v.index_select(0, transition.cols) * weights)
+    return out.index_add_(0, rows, v.index_select(0, transition.cols) * weights[:, None])
 
 
 # ----------------------------------------------------------------------------- pattern helpers
