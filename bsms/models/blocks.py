@@ -23,6 +23,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from bsms.models import native
 from bsms.models.mlp import mlp
 
 
@@ -60,18 +61,35 @@ def edge_first_layer(linear: nn.Linear, features: Tensor, v: Tensor, index: Tens
     return out.addmm_(features.to(out.dtype), weight[:, :f].T.to(out.dtype))
 
 
+def _compiled_sums(edge_mlp: nn.Sequential, features: Tensor, v: Tensor, index: Tensor) -> Tensor | None:
+    """The sums over each receiver's edges of relu(first layer) by the compiled loop
+    (:func:`bsms.models.native.edge_sums`), for an MLP [Linear, ReLU, Linear] at inference in
+    float32 on a CPU; None elsewhere (the torch path runs)."""
+    if torch.is_grad_enabled() or len(edge_mlp) != 3 or not isinstance(edge_mlp[1], nn.ReLU) \
+            or v.device.type != "cpu" or v.dtype != torch.float32 or torch.is_autocast_enabled("cpu"):
+        return None
+    first, f, h = edge_mlp[0], features.shape[1], v.shape[1]
+    weight = first.weight
+    products = torch.addmm(torch.cat([first.bias, torch.zeros_like(first.bias)]), v,
+                           torch.cat([weight[:, f: f + h], weight[:, f + h:]]).T)
+    return native.edge_sums(products, features, weight[:, :f], index)
+
+
 def summed_messages(edge_mlp: nn.Sequential, features: Tensor, v: Tensor, index: Tensor) -> Tensor:
     """``sum_per_receiver(edge_mlp_messages(edge_mlp, features, v, index), receivers, N)``, (N, out);
     an MLP whose last layer is a Linear after others gets it applied once per node, to the sums
-    of its inputs (exact up to float round-off, and so are its gradients)."""
+    of its inputs (exact up to float round-off, and so are its gradients). At inference a
+    [Linear, ReLU, Linear] MLP's sums come from one compiled pass over the edges where it runs."""
     receivers, n_nodes = index[1], v.shape[0]
-    hidden = edge_first_layer(edge_mlp[0], features, v, index)
     last = edge_mlp[-1]
     if len(edge_mlp) == 1 or not isinstance(last, nn.Linear):
-        return sum_per_receiver(after_first_layer(edge_mlp, hidden), receivers, n_nodes)
-    for layer in islice(edge_mlp, 1, len(edge_mlp) - 1):
-        hidden = layer(hidden)
-    summed = sum_per_receiver(hidden, receivers, n_nodes)
+        return sum_per_receiver(edge_mlp_messages(edge_mlp, features, v, index), receivers, n_nodes)
+    summed = _compiled_sums(edge_mlp, features, v, index)
+    if summed is None:
+        hidden = edge_first_layer(edge_mlp[0], features, v, index)
+        for layer in islice(edge_mlp, 1, len(edge_mlp) - 1):
+            hidden = layer(hidden)
+        summed = sum_per_receiver(hidden, receivers, n_nodes)
     degree = torch.bincount(receivers, minlength=n_nodes).to(summed.dtype)[:, None]
     return torch.addmm(degree * last.bias.to(summed.dtype), summed, last.weight.T.to(summed.dtype))
 

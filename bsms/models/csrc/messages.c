@@ -1,0 +1,74 @@
+/* Summed messages of one message pass, for inference (bsms/models/native.py).
+ *
+ * For every edge k = (s, r): h_k = relu(P[r, :H] + P[s, H:] + W_e f_k), and out[r] += h_k,
+ * where P = [W_r v + b | W_s v] holds the node products of the edge MLP's first layer (the
+ * caller computes them, one matrix product over the nodes) and W_e its edge-feature columns.
+ * One pass over the edges, with no (E, H) array: the torch path writes and reads such an array
+ * four times (gathered products, edge features added, ReLU, scatter to the receivers), and on
+ * the narrow latents of a lean network memory traffic is what those passes cost.
+ * Edges are taken in order, so each receiver's sum adds its edges in the order index_add_ does.
+ */
+#include <stdint.h>
+
+#define EDGE_LOOP(H)                                                                       \
+    for (int64_t k = 0; k < n_edges; ++k) {                                                \
+        const float *pr = products + receivers[k] * 2 * (H);                               \
+        const float *ps = products + senders[k] * 2 * (H) + (H);                           \
+        const float *f = features + k * n_features;                                        \
+        float h[H];                                                                        \
+        for (int64_t j = 0; j < (H); ++j) h[j] = pr[j] + ps[j];                            \
+        for (int64_t c = 0; c < n_features; ++c) {                                         \
+            const float x = f[c];                                                          \
+            const float *w = weight_t + c * (H);                                           \
+            for (int64_t j = 0; j < (H); ++j) h[j] += x * w[j];                            \
+        }                                                                                  \
+        float *o = out + receivers[k] * (H);                                               \
+        for (int64_t j = 0; j < (H); ++j) o[j] += h[j] > 0.0f ? h[j] : 0.0f;               \
+    }
+
+static void sums_32(int64_t n_edges, int64_t n_features, const int64_t *senders, const int64_t *receivers,
+                    const float *products, const float *features, const float *weight_t, float *out) {
+    EDGE_LOOP(32)
+}
+
+static void sums_64(int64_t n_edges, int64_t n_features, const int64_t *senders, const int64_t *receivers,
+                    const float *products, const float *features, const float *weight_t, float *out) {
+    EDGE_LOOP(64)
+}
+
+static void sums_128(int64_t n_edges, int64_t n_features, const int64_t *senders, const int64_t *receivers,
+                     const float *products, const float *features, const float *weight_t, float *out) {
+    EDGE_LOOP(128)
+}
+
+/* hidden: H, at most 1024. Returns 0, or 1 for a width it does not take. */
+int bsms_edge_sums(int64_t n_edges, int64_t hidden, int64_t n_features, const int64_t *senders,
+                   const int64_t *receivers, const float *products, const float *features,
+                   const float *weight_t, float *out) {
+    if (hidden == 32) {
+        sums_32(n_edges, n_features, senders, receivers, products, features, weight_t, out);
+    } else if (hidden == 64) {
+        sums_64(n_edges, n_features, senders, receivers, products, features, weight_t, out);
+    } else if (hidden == 128) {
+        sums_128(n_edges, n_features, senders, receivers, products, features, weight_t, out);
+    } else if (hidden > 0 && hidden <= 1024) {
+        const int64_t H = hidden;
+        for (int64_t k = 0; k < n_edges; ++k) {
+            const float *pr = products + receivers[k] * 2 * H;
+            const float *ps = products + senders[k] * 2 * H + H;
+            const float *f = features + k * n_features;
+            float h[1024];
+            for (int64_t j = 0; j < H; ++j) h[j] = pr[j] + ps[j];
+            for (int64_t c = 0; c < n_features; ++c) {
+                const float x = f[c];
+                const float *w = weight_t + c * H;
+                for (int64_t j = 0; j < H; ++j) h[j] += x * w[j];
+            }
+            float *o = out + receivers[k] * H;
+            for (int64_t j = 0; j < H; ++j) o[j] += h[j] > 0.0f ? h[j] : 0.0f;
+        }
+    } else {
+        return 1;
+    }
+    return 0;
+}

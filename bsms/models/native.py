@@ -1,0 +1,70 @@
+"""Compiled message sums for inference (``csrc/messages.c``), built on first use.
+
+On the narrow latents of a lean network (the press recipe: latent 32, one hidden layer, no
+LayerNorm) a message pass costs what its (E, H) per-edge arrays cost to write and read: the
+torch path gathers the node products per edge, adds the edge features' product, applies the
+ReLU and scatters to the receivers, four passes over such an array. :func:`edge_sums` does all
+of it in one pass over the edges and never builds the array. It serves inference only (no
+gradients) in float32 on a CPU; :func:`bsms.models.blocks.summed_messages` takes the torch path
+everywhere else, and where no C compiler is found or ``BSMS_NATIVE=0``. Built by
+:func:`datagen.compiled.build`.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from datagen import compiled
+
+__all__ = ["library", "edge_sums"]
+
+SOURCE = Path(__file__).with_name("csrc") / "messages.c"
+
+
+@functools.cache
+def library() -> ctypes.CDLL | None:
+    """The compiled library, or None where it cannot be built (torch sums the messages instead)."""
+    lib = compiled.build(SOURCE, "compiled message sums", "messages are summed in torch, about twice as slowly")
+    if lib is None:
+        return None
+    i64, ptr = ctypes.c_int64, ctypes.c_void_p
+    lib.bsms_edge_sums.argtypes = [i64, i64, i64] + [ptr] * 6
+    lib.bsms_edge_sums.restype = ctypes.c_int
+    return lib
+
+
+def edge_sums(products: Tensor, features: Tensor, edge_weight: Tensor, index: Tensor) -> Tensor | None:
+    """(N, H) per receiver the sum over its edges of relu(P[r, :H] + P[s, H:] + edge_weight f_k),
+    or None where the compiled code cannot run (no library, or not float32 CPU tensors).
+
+    products: (N, 2H) float32 node products [W_r v + b | W_s v]; features: (E, F) float32;
+    edge_weight: (H, F) the first layer's edge-feature columns; index: (2, E) int64 (senders,
+    receivers), every entry in [0, N) (checked: an index out of range raises IndexError)."""
+    lib = library()
+    tensors = (products, features, edge_weight)
+    if lib is None or any(t.dtype != torch.float32 or t.device.type != "cpu" for t in tensors) \
+            or index.dtype != torch.int64 or index.device.type != "cpu":
+        return None
+    n_nodes, hidden = products.shape[0], products.shape[1] // 2
+    n_edges, n_features = features.shape
+    if index.shape != (2, n_edges) or edge_weight.shape != (hidden, n_features):
+        raise ValueError(f"edge_sums: index {tuple(index.shape)} and edge weight {tuple(edge_weight.shape)} do not "
+                         f"match {n_edges} edges of {n_features} features and products of width {2 * hidden}")
+    if n_edges:
+        low, high = torch.aminmax(index)
+        if int(low) < 0 or int(high) >= n_nodes:
+            raise IndexError(f"edge_sums: node index {int(low) if int(low) < 0 else int(high)} out of range for "
+                             f"{n_nodes} nodes")
+    out = torch.zeros(n_nodes, hidden)
+    senders, receivers = index[0].contiguous(), index[1].contiguous()
+    products, features = products.contiguous(), features.contiguous()
+    weight_t = edge_weight.t().contiguous()
+    if lib.bsms_edge_sums(n_edges, hidden, n_features, senders.data_ptr(), receivers.data_ptr(), products.data_ptr(),
+                          features.data_ptr(), weight_t.data_ptr(), out.data_ptr()):
+        return None
+    return out

@@ -1,0 +1,110 @@
+"""The compiled message sums (bsms/models/native.py) against the torch message pass they replace."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from bsms.models import BSMSGNN, EdgeSet, Level, MessagePassingBlock, blocks, native
+from bsms.models.blocks import edge_first_layer, sum_per_receiver
+
+
+@pytest.fixture(autouse=True)
+def compiled():
+    """Every test here needs the compiled loop; CI machines have a C compiler."""
+    native.library.cache_clear()
+    assert native.library() is not None, "no C compiler: the compiled message sums cannot be built"
+    yield
+    native.library.cache_clear()
+
+
+def torch_sums(linear: nn.Linear, features, v, index):
+    """What the compiled loop replaces: relu(first layer) per edge, summed per receiver."""
+    return sum_per_receiver(torch.relu(edge_first_layer(linear, features, v, index)), index[1], v.shape[0])
+
+
+def random_edges(n_nodes: int, n_edges: int, generator) -> torch.Tensor:
+    """(2, E) with repeated edges, self-loops and (for the last quarter of the nodes) no edges at all."""
+    return torch.randint(0, 3 * n_nodes // 4, (2, n_edges), generator=generator)
+
+
+@pytest.mark.parametrize("hidden", [32, 64, 128, 48])  # the three unrolled widths and the generic loop
+@pytest.mark.parametrize("n_features", [3, 6])
+def test_compiled_sums_equal_the_torch_pass(hidden, n_features):
+    g = torch.Generator().manual_seed(hidden + n_features)
+    n_nodes = 200
+    linear = nn.Linear(n_features + 2 * hidden, hidden)
+    v = torch.randn(n_nodes, hidden, generator=g)
+    features = torch.randn(900, n_features, generator=g)
+    index = random_edges(n_nodes, 900, g)
+    f, h = n_features, hidden
+    with torch.no_grad():
+        products = torch.addmm(torch.cat([linear.bias, torch.zeros(h)]), v,
+                               torch.cat([linear.weight[:, f: f + h], linear.weight[:, f + h:]]).T)
+        ours = native.edge_sums(products, features, linear.weight[:, :f], index)
+        reference = torch_sums(linear, features, v, index)
+    assert torch.equal(ours[3 * n_nodes // 4:], torch.zeros(n_nodes // 4, hidden))
+    # the same sums in the same edge order; each term a float32 sum of 2 + F products in another order
+    torch.testing.assert_close(ours, reference, rtol=0, atol=2e-6 * float(reference.abs().max()))
+
+
+def test_an_index_out_of_range_raises_and_other_dtypes_take_the_torch_path():
+    products, features, weight = torch.zeros(5, 64), torch.zeros(3, 2), torch.zeros(32, 2)
+    with pytest.raises(IndexError, match=r"^edge_sums: node index 5 out of range for 5 nodes$"):
+        native.edge_sums(products, features, weight, torch.tensor([[0, 1, 2], [4, 5, 0]]))
+    with pytest.raises(IndexError, match=r"^edge_sums: node index -1 out of range for 5 nodes$"):
+        native.edge_sums(products, features, weight, torch.tensor([[0, -1, 2], [4, 1, 0]]))
+    index = torch.tensor([[0, 1, 2], [4, 3, 0]])
+    assert native.edge_sums(products.double(), features.double(), weight.double(), index) is None
+    assert native.edge_sums(products.bfloat16(), features, weight, index) is None
+    assert native.edge_sums(products, features, weight, index.int()) is None
+    assert torch.equal(native.edge_sums(products, features, weight, index), torch.zeros(5, 32))
+
+
+def lean_levels(generator) -> tuple[BSMSGNN, list[Level], torch.Tensor]:
+    torch.manual_seed(4)
+    model = BSMSGNN(5, 2, [3, 2], n_levels=1, latent=32, hidden=32, hidden_layers=1, layer_norm=False)
+    edge_sets = [EdgeSet(random_edges(80, 400, generator), torch.randn(400, 3, generator=generator)),
+                 EdgeSet(random_edges(80, 30, generator), torch.randn(30, 2, generator=generator))]
+    return model, [Level(edge_sets, None, None)], torch.randn(80, 5, generator=generator)
+
+
+def test_inference_sums_messages_in_the_compiled_loop_and_training_in_torch(monkeypatch):
+    """A lean block (one hidden layer, no LayerNorm) at inference: every edge set through the
+    compiled loop, the output that of the torch path to float32 round-off; with gradients, or
+    with LayerNorm, or two hidden layers, the compiled loop is never called."""
+    model, levels, x = lean_levels(torch.Generator().manual_seed(7))
+    calls = []
+    edge_sums = native.edge_sums
+    monkeypatch.setattr(native, "edge_sums", lambda *args: calls.append(args[3].shape[1]) or edge_sums(*args))
+    with torch.no_grad():
+        compiled_out = model(x, levels)
+    assert calls == [400, 30], calls
+    with monkeypatch.context() as patch:
+        patch.setattr(blocks, "_compiled_sums", lambda *args: None)
+        with torch.no_grad():
+            torch_out = model(x, levels)
+    torch.testing.assert_close(compiled_out, torch_out, rtol=0, atol=2e-6 * float(torch_out.abs().max()))
+    calls.clear()
+    model(x, levels).sum().backward()  # training: gradients through the torch path
+    with torch.no_grad():
+        for block in (MessagePassingBlock(32, [3, 2], 32, 1, layer_norm=True),
+                      MessagePassingBlock(32, [3, 2], 32, 2, layer_norm=False)):
+            block(torch.randn(80, 32), levels[0].edge_sets)
+    assert calls == [], calls
+
+
+def test_without_a_compiler_the_torch_path_gives_the_same_output(monkeypatch, tmp_path):
+    model, levels, x = lean_levels(torch.Generator().manual_seed(8))
+    with torch.no_grad():
+        expected = model(x, levels)
+    native.library.cache_clear()
+    monkeypatch.setenv("BSMS_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", "false")
+    with pytest.warns(RuntimeWarning, match=r"could not build the compiled message sums \(false failed"):
+        assert native.library() is None
+    with torch.no_grad():
+        fallback = model(x, levels)
+    torch.testing.assert_close(fallback, expected, rtol=0, atol=2e-6 * float(expected.abs().max()))
+    assert not list(tmp_path.rglob("*.so"))
