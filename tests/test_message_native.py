@@ -1,13 +1,16 @@
-"""The compiled message sums (bsms/models/native.py) against the torch message pass they replace."""
+"""The compiled message sums and edge inputs (bsms/models/native.py) against the torch code they replace."""
 
 from __future__ import annotations
 
 import pytest
 import torch
+from test_precision import floor_scenario, state
 from torch import nn
 
 from bsms.models import BSMSGNN, EdgeSet, Level, MessagePassingBlock, blocks, native
 from bsms.models.blocks import edge_first_layer, sum_per_receiver
+from bsms.models.simulator import LearnedSimulator, _offsets
+from bsms.normalize import Normalizer
 
 
 @pytest.fixture(autouse=True)
@@ -108,3 +111,44 @@ def test_without_a_compiler_the_torch_path_gives_the_same_output(monkeypatch, tm
         fallback = model(x, levels)
     torch.testing.assert_close(fallback, expected, rtol=0, atol=2e-6 * float(expected.abs().max()))
     assert not list(tmp_path.rglob("*.so"))
+
+
+@pytest.mark.parametrize("dim, groups", [(2, 2), (3, 2), (2, 1), (1, 3)])
+def test_compiled_edge_offsets_equal_the_torch_inputs(dim, groups):
+    """Offsets and lengths per group of points, normalised: the torch path's values to float32 round-off."""
+    g = torch.Generator().manual_seed(10 * dim + groups)
+    points = torch.randn(120, groups * dim, generator=g)
+    index = random_edges(120, 700, g)
+    normalizer = Normalizer(groups * (dim + 1))
+    normalizer.accumulate(3.0 * torch.randn(50, groups * (dim + 1), generator=g) + 1.0)
+    ours = native.edge_offsets(points, index, dim, normalizer.mean, normalizer.std)
+    reference = normalizer(_offsets(points, index, dim))
+    assert ours.shape == reference.shape == (700, groups * (dim + 1))
+    torch.testing.assert_close(ours, reference, rtol=0, atol=1e-6 * float(reference.abs().max()))
+    with pytest.raises(IndexError, match=r"^edge_offsets: node index 120 out of range for 120 nodes$"):
+        native.edge_offsets(points, torch.tensor([[0], [120]]), dim, normalizer.mean, normalizer.std)
+    assert native.edge_offsets(points.double(), index, dim, normalizer.mean, normalizer.std) is None
+
+
+def test_a_models_inputs_come_from_the_compiled_pass_at_inference_only(monkeypatch):
+    """LearnedSimulator._level at inference: mesh and contact inputs through edge_offsets, the
+    outputs those of the torch path; while the normalisers accumulate (training), never."""
+    scenario = floor_scenario()
+    torch.manual_seed(0)
+    model = LearnedSimulator("bsms_gnn", 2, n_levels=3, contact=True, latent=32, hidden_layers=1,
+                             core_options={"layer_norm": False})
+    graphs = [scenario.graph(*state(scenario, seed), target=0.01 * state(scenario, seed)[1]) for seed in range(3)]
+    calls = []
+    edge_offsets = native.edge_offsets
+    monkeypatch.setattr(native, "edge_offsets", lambda *args: calls.append(args[1].shape[1]) or edge_offsets(*args))
+    for graph in graphs:
+        model.loss(graph, accumulate=True)
+    assert calls == []
+    model.eval()
+    with torch.no_grad():
+        compiled = model(graphs[2])
+        assert len(calls) == 2 * 3 and 0 not in calls[::2], calls  # mesh and contact edges on every level
+        with monkeypatch.context() as patch:
+            patch.setattr(native, "edge_offsets", lambda *args: None)
+            reference = model(graphs[2])
+    torch.testing.assert_close(compiled, reference, rtol=0, atol=1e-5 * float(reference.abs().max()))

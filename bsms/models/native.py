@@ -4,7 +4,8 @@ On the narrow latents of a lean network (the press recipe: latent 32, one hidden
 LayerNorm) a message pass costs what its (E, H) per-edge arrays cost to write and read: the
 torch path gathers the node products per edge, adds the edge features' product, applies the
 ReLU and scatters to the receivers, four passes over such an array. :func:`edge_sums` does all
-of it in one pass over the edges and never builds the array. It serves inference only (no
+of it in one pass over the edges and never builds the array; :func:`edge_offsets` computes a
+level's normalised edge inputs (offsets and lengths) in one pass too. It serves inference only (no
 gradients) in float32 on a CPU; :func:`bsms.models.blocks.summed_messages` takes the torch path
 everywhere else, and where no C compiler is found or ``BSMS_NATIVE=0``. Built by
 :func:`datagen.compiled.build`.
@@ -21,7 +22,7 @@ from torch import Tensor
 
 from datagen import compiled
 
-__all__ = ["library", "edge_sums"]
+__all__ = ["library", "edge_sums", "edge_offsets"]
 
 SOURCE = Path(__file__).with_name("csrc") / "messages.c"
 
@@ -35,6 +36,8 @@ def library() -> ctypes.CDLL | None:
     i64, ptr = ctypes.c_int64, ctypes.c_void_p
     lib.bsms_edge_sums.argtypes = [i64, i64, i64] + [ptr] * 6
     lib.bsms_edge_sums.restype = ctypes.c_int
+    lib.bsms_edge_offsets.argtypes = [i64, i64, i64] + [ptr] * 6
+    lib.bsms_edge_offsets.restype = ctypes.c_int
     return lib
 
 
@@ -52,19 +55,52 @@ def edge_sums(products: Tensor, features: Tensor, edge_weight: Tensor, index: Te
         return None
     n_nodes, hidden = products.shape[0], products.shape[1] // 2
     n_edges, n_features = features.shape
-    if index.shape != (2, n_edges) or edge_weight.shape != (hidden, n_features):
-        raise ValueError(f"edge_sums: index {tuple(index.shape)} and edge weight {tuple(edge_weight.shape)} do not "
-                         f"match {n_edges} edges of {n_features} features and products of width {2 * hidden}")
-    if n_edges:
-        low, high = torch.aminmax(index)
-        if int(low) < 0 or int(high) >= n_nodes:
-            raise IndexError(f"edge_sums: node index {int(low) if int(low) < 0 else int(high)} out of range for "
-                             f"{n_nodes} nodes")
+    if edge_weight.shape != (hidden, n_features):
+        raise ValueError(f"edge_sums: edge weight of shape {tuple(edge_weight.shape)}, expected ({hidden}, "
+                         f"{n_features}) for products of width {2 * hidden} and {n_features} features")
+    _check_index(index, n_edges, n_nodes, "edge_sums")
     out = torch.zeros(n_nodes, hidden)
     senders, receivers = index[0].contiguous(), index[1].contiguous()
     products, features = products.contiguous(), features.contiguous()
     weight_t = edge_weight.t().contiguous()
     if lib.bsms_edge_sums(n_edges, hidden, n_features, senders.data_ptr(), receivers.data_ptr(), products.data_ptr(),
                           features.data_ptr(), weight_t.data_ptr(), out.data_ptr()):
+        return None
+    return out
+
+
+def _check_index(index: Tensor, n_edges: int, n_nodes: int, what: str) -> None:
+    if index.shape != (2, n_edges):
+        raise ValueError(f"{what}: index of shape {tuple(index.shape)}, expected (2, {n_edges})")
+    if n_edges:
+        low, high = torch.aminmax(index)
+        if int(low) < 0 or int(high) >= n_nodes:
+            raise IndexError(f"{what}: node index {int(low) if int(low) < 0 else int(high)} out of range for "
+                             f"{n_nodes} nodes")
+
+
+def edge_offsets(points: Tensor, index: Tensor, dim: int, mean: Tensor, std: Tensor) -> Tensor | None:
+    """:func:`bsms.models.simulator._offsets` normalised by ``(x - mean) / std``, (E, k (d + 1)),
+    or None where the compiled code cannot run (no library, not float32 CPU tensors, d > 3).
+
+    points: (N, k d) k points of dimension d per node; index: (2, E) int64 (senders, receivers);
+    mean, std: (k (d + 1),) the normaliser's statistics."""
+    lib = library()
+    if lib is None or not 1 <= dim <= 3 or points.dtype != torch.float32 or points.device.type != "cpu" \
+            or index.dtype != torch.int64 or index.device.type != "cpu":
+        return None
+    n_groups = points.shape[1] // dim
+    columns = n_groups * (dim + 1)
+    if points.shape[1] != n_groups * dim or mean.shape != (columns,) or std.shape != (columns,):
+        raise ValueError(f"edge_offsets: points of width {points.shape[1]} in dimension {dim} and statistics of "
+                         f"shapes {tuple(mean.shape)}, {tuple(std.shape)} do not match")
+    n_edges = index.shape[1]
+    _check_index(index, n_edges, points.shape[0], "edge_offsets")
+    out = torch.empty(n_edges, columns)
+    senders, receivers = index[0].contiguous(), index[1].contiguous()
+    points = points.contiguous()
+    mean, std = mean.to(torch.float32).contiguous(), std.to(torch.float32).contiguous()
+    if lib.bsms_edge_offsets(n_edges, n_groups, dim, points.data_ptr(), senders.data_ptr(), receivers.data_ptr(),
+                             mean.data_ptr(), std.data_ptr(), out.data_ptr()):
         return None
     return out

@@ -17,6 +17,7 @@ from torch import Tensor, nn
 
 from bsms.data import LevelGraph, NodeType
 from bsms.fields import FieldSpec
+from bsms.models import native
 from bsms.models.blocks import EdgeSet
 from bsms.models.bsms_gnn import BSMSGNN
 from bsms.models.inputs import Context, Level
@@ -146,28 +147,39 @@ class LearnedSimulator(nn.Module):
         if l < getattr(self.core, "first_level", 0) and l + 1 < self.n_levels:  # a level that passes no messages
             return Level([], graph.transition("down", l), graph.transition("up", l), nodes)
         spec = self.spec
+        normalizers = self.edge_normalizers[l]
         if spec.is_lagrangian and spec.material_dim == self.dim:
             rest_and_pos = torch.cat([graph.rest_pos, graph.pos], dim=-1).index_select(0, nodes)
-            features, world = [_offsets(rest_and_pos, edge_index, self.dim)], rest_and_pos[:, self.dim:]
+            world = rest_and_pos[:, self.dim:]
+            edge_sets = [EdgeSet(edge_index, self._edge_inputs(normalizers[0], rest_and_pos, edge_index, accumulate))]
         else:  # Eulerian: material offsets only; cloth: material and world offsets of different dimensions
             parts = [_offsets(graph.rest_pos.index_select(0, nodes), edge_index, spec.material_dim)]
             world = graph.pos.index_select(0, nodes)
             if spec.is_lagrangian:
                 parts.append(_offsets(world, edge_index, self.dim))
-            features = [torch.cat(parts, dim=-1)]
-        indices = [edge_index]
+            raw = torch.cat(parts, dim=-1)
+            if accumulate:
+                normalizers[0].accumulate(raw)
+            edge_sets = [EdgeSet(edge_index, normalizers[0](raw))]
         if self.contact:
             contact_index = graph[f"contact_index_{l}"]
-            features.append(_offsets(world, contact_index, self.dim))
-            indices.append(contact_index)
-        edge_sets = []
-        for normalizer, index, raw in zip(self.edge_normalizers[l], indices, features, strict=True):
-            if accumulate:
-                normalizer.accumulate(raw)
-            edge_sets.append(EdgeSet(index, normalizer(raw)))
+            contact_inputs = self._edge_inputs(normalizers[1], world, contact_index, accumulate)
+            edge_sets.append(EdgeSet(contact_index, contact_inputs))
         if l + 1 == self.n_levels:
             return Level(edge_sets, None, None, nodes)
         return Level(edge_sets, graph.transition("down", l), graph.transition("up", l), nodes)
+
+    def _edge_inputs(self, normalizer: Normalizer, points: Tensor, index: Tensor, accumulate: bool) -> Tensor:
+        """The normalised offsets and lengths of ``index``'s edges between ``points`` (N, k d): at
+        inference in one compiled pass where it runs (:func:`bsms.models.native.edge_offsets`)."""
+        if not accumulate and not torch.is_grad_enabled():
+            inputs = native.edge_offsets(points, index, self.dim, normalizer.mean, normalizer.std)
+            if inputs is not None:
+                return inputs
+        raw = _offsets(points, index, self.dim)
+        if accumulate:
+            normalizer.accumulate(raw)
+        return normalizer(raw)
 
     def _context(self, graph: LevelGraph, accumulate: bool) -> Context:
         counts = graph["n_nodes_0"]

@@ -8,6 +8,7 @@
  * the narrow latents of a lean network memory traffic is what those passes cost.
  * Edges are taken in order, so each receiver's sum adds its edges in the order index_add_ does.
  */
+#include <math.h>
 #include <stdint.h>
 
 #define EDGE_LOOP(H)                                                                       \
@@ -69,6 +70,31 @@ int bsms_edge_sums(int64_t n_edges, int64_t hidden, int64_t n_features, const in
         }
     } else {
         return 1;
+    }
+    return 0;
+}
+
+/* Normalised edge offsets, for inference: for every edge k = (s, r) and each of the node's
+ * n_groups points of dimension dim (e.g. rest and world position), the offset x_r - x_s and
+ * its length, laid out group by group as [offset, length], then (value - mean) / std per column.
+ * points: (N, n_groups * dim); out: (E, n_groups * (dim + 1)). Returns 0, or 1 for dim > 3. */
+int bsms_edge_offsets(int64_t n_edges, int64_t n_groups, int64_t dim, const float *points, const int64_t *senders,
+                      const int64_t *receivers, const float *mean, const float *std, float *out) {
+    if (dim < 1 || dim > 3) return 1;
+    const int64_t width = n_groups * dim, columns = n_groups * (dim + 1);
+    for (int64_t k = 0; k < n_edges; ++k) {
+        const float *pr = points + receivers[k] * width, *ps = points + senders[k] * width;
+        float *o = out + k * columns;
+        for (int64_t g = 0; g < n_groups; ++g) {
+            float squares = 0.0f;
+            for (int64_t c = 0; c < dim; ++c) {
+                const float delta = pr[g * dim + c] - ps[g * dim + c];
+                o[g * (dim + 1) + c] = delta;
+                squares += delta * delta;
+            }
+            o[g * (dim + 1) + dim] = sqrtf(squares);
+        }
+        for (int64_t c = 0; c < columns; ++c) o[c] = (o[c] - mean[c]) / std[c];
     }
     return 0;
 }
