@@ -19,6 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from bsms.graph import native
 from bsms.graph.bfs import off_diagonal_pattern
 from bsms.graph.hierarchy import Hierarchy, edge_index_of
 
@@ -99,6 +100,9 @@ def coarse_images(pairs: np.ndarray, reach: sp.csr_matrix) -> np.ndarray:
     both directions, sorted by (row, col). A pair whose ends reach r_i and r_j nodes gives
     r_i * r_j candidates, built without a loop from the pairs with i < j (the rest are mirrors).
     """
+    compiled = native.coarse_images(pairs, reach)
+    if compiled is not None:  # the same array from one compiled pass (bsms.graph.native)
+        return compiled
     indptr, indices, n = reach.indptr.astype(np.int64), reach.indices.astype(np.int64), reach.shape[1]
     i, j = pairs[:, pairs[0] < pairs[1]]
     start_i, start_j = indptr[i], indptr[j]

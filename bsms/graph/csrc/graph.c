@@ -1,6 +1,7 @@
 /* Compiled loops of the bi-stride hierarchy (bsms/graph/native.py): the pooled adjacency of a
- * coarse level and bit-parallel breadth-first distance sums. Both produce exactly what the
- * scipy/csgraph code produces (bsms/graph/pooling.py, bsms/graph/seeding.py); the tests compare.
+ * coarse level, bit-parallel breadth-first distance sums, and contact edges carried one level
+ * down. Each produces exactly what the scipy/csgraph/numpy code produces (bsms/graph/pooling.py,
+ * bsms/graph/seeding.py, bsms/graph/contact.py); the tests compare.
  *
  * Graphs are CSR arrays with int64 row pointers and column indices. */
 #include <stdint.h>
@@ -204,4 +205,103 @@ int bsms_multi_bfs(i64 n, const i64 *ptr, const i64 *idx, i64 n_sources, const i
     free(front);
     free(touched);
     return failed;
+}
+
+/* Contact edges one level down (thesis eq. 4.1; bsms.graph.contact.coarse_images): for every
+ * pair (i, j) with i < j of `rows`/`cols`, every (a, b) with a in reach[i], b in reach[j], a != b,
+ * in both directions; written once each, sorted by (row, col), into out_rows/out_cols (room for
+ * `capacity` entries). reach (n_fine x n_coarse): indptr/indices, the coarse nodes each fine node
+ * reaches. The pairs of one fine node i (consecutive where the pairs are sorted by row, as
+ * contact edges are) share their images: the union U of reach[j] over them is taken first (a
+ * stamp per coarse node), then reach[i] x U; what remains repeated is ordered by two counting
+ * sorts over the coarse nodes (by column, then stably by row) and dropped as it is written.
+ * Returns the count written; -1 when memory runs out; -2 - n when the output needs room for n. */
+
+/* The candidates of the run of pairs [p, q) that share row i: reach[i] x (union of reach[j]),
+ * both directions, appended at a/b from k on (a == NULL: only counted). Returns the new k. */
+static i64 images_of_row(i64 p, i64 q, const i64 *rows, const i64 *cols, const i64 *indptr, const i64 *indices,
+                         i64 *stamp, i64 *united, i64 *a, i64 *b, i64 k) {
+    const i64 i = rows[p];
+    i64 n_united = 0;
+    for (i64 r = p; r < q; r++) {
+        const i64 j = cols[r];
+        if (i >= j) continue;
+        for (i64 y = indptr[j]; y < indptr[j + 1]; y++)
+            if (stamp[indices[y]] != p) {
+                stamp[indices[y]] = p;
+                united[n_united++] = indices[y];
+            }
+    }
+    for (i64 x = indptr[i]; x < indptr[i + 1]; x++)
+        for (i64 u = 0; u < n_united; u++) {
+            if (indices[x] == united[u]) continue;
+            if (a) {
+                a[k] = indices[x], b[k] = united[u];
+                a[k + 1] = united[u], b[k + 1] = indices[x];
+            }
+            k += 2;
+        }
+    return k;
+}
+
+i64 bsms_coarse_images(i64 n_pairs, const i64 *rows, const i64 *cols, const i64 *indptr, const i64 *indices,
+                       i64 n_coarse, i64 capacity, i64 *out_rows, i64 *out_cols) {
+    i64 *stamp = malloc(((size_t)n_coarse + 1) * sizeof(i64)), *united = malloc(((size_t)n_coarse + 1) * sizeof(i64));
+    i64 *count = malloc(((size_t)n_coarse + 1) * sizeof(i64));
+    i64 *a = NULL, *b = NULL, *a2 = NULL, *b2 = NULL;
+    i64 written = -1, total = 0;
+    if (!stamp || !united || !count) goto done;
+    for (int pass = 0; pass < 2; pass++) { /* count, then write */
+        for (i64 c = 0; c < n_coarse; c++) stamp[c] = -1;
+        i64 k = 0;
+        for (i64 p = 0, q; p < n_pairs; p = q) {
+            for (q = p + 1; q < n_pairs && rows[q] == rows[p];) q++;
+            k = images_of_row(p, q, rows, cols, indptr, indices, stamp, united, pass ? a : NULL, b, k);
+        }
+        if (pass == 0) {
+            total = k;
+            const size_t room = (size_t)(total > 0 ? total : 1);
+            a = malloc(room * sizeof(i64)), b = malloc(room * sizeof(i64));
+            a2 = malloc(room * sizeof(i64)), b2 = malloc(room * sizeof(i64));
+            if (!a || !b || !a2 || !b2) goto done;
+        }
+    }
+    /* by column, into a2/b2 */
+    memset(count, 0, ((size_t)n_coarse + 1) * sizeof(i64));
+    for (i64 k = 0; k < total; k++) count[b[k] + 1]++;
+    for (i64 c = 0; c < n_coarse; c++) count[c + 1] += count[c];
+    for (i64 k = 0; k < total; k++) {
+        const i64 at = count[b[k]]++;
+        a2[at] = a[k], b2[at] = b[k];
+    }
+    /* stably by row, back into a/b: sorted by (row, col) */
+    memset(count, 0, ((size_t)n_coarse + 1) * sizeof(i64));
+    for (i64 k = 0; k < total; k++) count[a2[k] + 1]++;
+    for (i64 c = 0; c < n_coarse; c++) count[c + 1] += count[c];
+    for (i64 k = 0; k < total; k++) {
+        const i64 at = count[a2[k]]++;
+        a[at] = a2[k], b[at] = b2[k];
+    }
+    written = 0;
+    for (i64 k = 0; k < total; k++)
+        if (k == 0 || a[k] != a[k - 1] || b[k] != b[k - 1]) {
+            if (written == capacity) { /* no room: count the rest, say how much is needed */
+                i64 needed = written;
+                for (; k < total; k++) needed += (a[k] != a[k - 1] || b[k] != b[k - 1]);
+                written = -2 - needed;
+                goto done;
+            }
+            out_rows[written] = a[k];
+            out_cols[written] = b[k];
+            written++;
+        }
+done:
+    free(stamp);
+    free(united);
+    free(count);
+    free(a);
+    free(b);
+    free(a2);
+    free(b2);
+    return written;
 }
