@@ -18,9 +18,13 @@ Prints one row per run, then ends with exactly
 
     learned frame: FIRST T0 ms (graph G0, network N0), LAST T1 ms (graph G1, network N1): S x faster
 
-(ms per frame; S = T0 / T1, the first run given as the baseline).
+(ms per frame; S = T0 / T1, the first run given as the baseline). ``--without-compiled`` adds,
+before the runs, the first run again with the compiled loops off (``RUN, torch``: the message
+sums, edge inputs and contact edges of :mod:`bsms.models.native` and :mod:`bsms.graph.native` in
+torch and numpy, as ``BSMS_NATIVE=0`` runs them), timed in the same alternation: the baseline
+the compiled loops are measured against.
 
-    python benchmarks/learned_frame.py RUN [RUN ...] [--split test] [--trajectories 4] [--repeats 3]
+    python benchmarks/learned_frame.py RUN [RUN ...] [--split test] [--trajectories 4] [--repeats 3] [--without-compiled]
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from bsms.data import Scenario  # noqa: E402
+from bsms.graph import native as graph_native  # noqa: E402
+from bsms.models import native as model_native  # noqa: E402
 from bsms.learned_rollouts import learned_rollouts  # noqa: E402
 from bsms.run import dataset_folder, load_model, split_files  # noqa: E402
 from datagen.dataset import load  # noqa: E402
@@ -95,6 +101,16 @@ def _prepare(run: Path, split: str, n: int, which: str, cache: Path):
     return model.eval(), config, trajectories, scenarios
 
 
+def _compiled(on: bool) -> None:
+    """Switch the compiled loops of inference on or off (``BSMS_NATIVE``, read when they load)."""
+    if on:
+        os.environ.pop("BSMS_NATIVE", None)
+    else:
+        os.environ["BSMS_NATIVE"] = "0"
+    graph_native.library.cache_clear()
+    model_native.library.cache_clear()
+
+
 def _time(model, config, trajectories, scenarios, cache: Path) -> dict:
     """Seconds per frame of each stage and of the whole rollout, one pass."""
     TOTALS.clear()
@@ -113,26 +129,34 @@ def main(argv=None) -> int:
     parser.add_argument("--trajectories", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--checkpoint", default="latest", choices=["latest", "best"])
+    parser.add_argument("--without-compiled", action="store_true",
+                        help="first time the first run with the compiled loops off (BSMS_NATIVE=0) as the baseline")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    entries = [(f"{run.name}, torch", run, False) for run in args.runs[:1] if args.without_compiled]
+    entries += [(run.name, run, True) for run in args.runs]
     with tempfile.TemporaryDirectory() as tmp:
         cache = Path(tmp)
-        prepared = {run: _prepare(run, args.split, args.trajectories, args.checkpoint, cache) for run in args.runs}
-        for model, config, trajectories, scenarios in prepared.values():  # untimed: caches, allocator
-            _time(model, config, trajectories, scenarios, cache)
+        prepared = {label: _prepare(run, args.split, args.trajectories, args.checkpoint, cache)
+                    for label, run, _ in entries}
+        for label, _, compiled in entries:  # untimed: caches, allocator
+            _compiled(compiled)
+            _time(*prepared[label], cache)
         samples = defaultdict(list)
         for _ in range(args.repeats):
-            for run, (model, config, trajectories, scenarios) in prepared.items():
-                samples[run].append(_time(model, config, trajectories, scenarios, cache))
-    rows = {run: {k: 1e3 * float(np.median([s[k] for s in samples[run]])) for k in (*STAGES, "total")}
-            for run in args.runs}
+            for label, _, compiled in entries:
+                _compiled(compiled)
+                samples[label].append(_time(*prepared[label], cache))
+        _compiled(True)
+    rows = {label: {k: 1e3 * float(np.median([s[k] for s in samples[label]])) for k in (*STAGES, "total")}
+            for label, _, _ in entries}
     print(f"{'run':28s} " + " ".join(f"{k:>12s}" for k in (*STAGES, "total")) + "   (ms per frame)")
-    for run, row in rows.items():
-        print(f"{run.name:28s} " + " ".join(f"{row[k]:12.2f}" for k in (*STAGES, "total")))
-    first, last = args.runs[0], args.runs[-1]
+    for label, row in rows.items():
+        print(f"{label:28s} " + " ".join(f"{row[k]:12.2f}" for k in (*STAGES, "total")))
+    first, last = entries[0][0], entries[-1][0]
     a, b = rows[first], rows[last]
-    print(f"learned frame: {first.name} {a['total']:.2f} ms (graph {a['frame arrays']:.2f}, network "
-          f"{a['network']:.2f}), {last.name} {b['total']:.2f} ms (graph {b['frame arrays']:.2f}, network "
+    print(f"learned frame: {first} {a['total']:.2f} ms (graph {a['frame arrays']:.2f}, network "
+          f"{a['network']:.2f}), {last} {b['total']:.2f} ms (graph {b['frame arrays']:.2f}, network "
           f"{b['network']:.2f}): {a['total'] / b['total']:.2f} x faster")
     return 0
 
