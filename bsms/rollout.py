@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from bsms.data import Scenario
 from bsms.level_graph import level_graph
+from bsms.models.blocks import compiled_message_passing
 from bsms.models.precision import network_dtype
 from bsms.motion import SKILL_KEYS
 
@@ -44,6 +45,11 @@ DEFAULT_BOUND = 0.5  # relative error (of the body size) at which a rollout coun
 # it the activations leave the caches and a frame costs more: 2 press test trajectories (~1,300
 # nodes each, latent 32, one thread) took 63 ms per frame at 40 frames per call, 30 ms at 4.
 CPU_NODES_PER_CALL = 12_000
+# ... unless every message pass is summed by the compiled loop (no per-edge activations): then a
+# bigger call only spreads the per-call costs. pretrained/press2d through bsms.infer, three shapes
+# of ~1,900 nodes: 9.2-10.3 ms per frame at 12,000 nodes per call, 7.1-7.5 at 48,000; its 8 test
+# trajectories at once: the same at both.
+CPU_NODES_PER_CALL_COMPILED = 48_000
 
 
 def peak_memory_mb(device: torch.device | str = "cpu") -> float:
@@ -266,7 +272,9 @@ def _all_frames(model, tracks: list[_Track], device: torch.device, precision: st
                 progress: bool) -> None:
     """The rollouts of independent frames (:func:`_independent`): up to ``frames_per_call`` frames
     of every track joined into one model call (:func:`_step`), on a CPU no more than fit
-    :data:`CPU_NODES_PER_CALL` graph nodes (at least one frame)."""
+    :data:`CPU_NODES_PER_CALL` graph nodes (:data:`CPU_NODES_PER_CALL_COMPILED` for a model whose
+    message passes are all compiled, :func:`~bsms.models.blocks.compiled_message_passing`; at
+    least one frame)."""
     for k in tracks:  # the drive of every frame, before any is predicted
         if k.known is not None:
             k.positions[1:, k.scenario.kinematic] = k.known[1: k.steps + 1][:, k.scenario.kinematic]
@@ -275,7 +283,9 @@ def _all_frames(model, tracks: list[_Track], device: torch.device, precision: st
     longest = max(k.steps for k in tracks)
     if device.type == "cpu":  # a call's tensors beyond the caches' size cost more per frame
         nodes = sum(len(k.positions[0]) for k in tracks)
-        frames_per_call = max(1, min(frames_per_call, CPU_NODES_PER_CALL // nodes))
+        compiled = compiled_message_passing(model, network_dtype(precision, device, getattr(model, "latent", None)))
+        budget = CPU_NODES_PER_CALL_COMPILED if compiled else CPU_NODES_PER_CALL
+        frames_per_call = max(1, min(frames_per_call, budget // nodes))
     for t0 in tqdm(range(0, longest, frames_per_call), desc="rollout", unit="call", disable=not progress):
         jobs = [(k, t) for t in range(t0, min(t0 + frames_per_call, longest)) for k in tracks if k.running(t)]
         if not jobs:

@@ -10,6 +10,7 @@ from test_unroll import Stub
 import bsms.rollout as rollout_module
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
+from bsms.models.blocks import compiled_message_passing
 from bsms.models.simulator import LearnedSimulator
 from bsms.rollout import rollout
 from bsms.run import load_config, split_files
@@ -170,6 +171,30 @@ def test_cpu_calls_hold_at_most_the_node_budget(frames, monkeypatch):
     calls.clear()
     rollout(model, scenario, x[0], v[0], steps, known_positions=x, warmup=0, precision="f32", frames_per_call=steps)
     assert len(calls) == steps
+
+
+def test_compiled_message_passing_gets_the_larger_call_budget(frames, monkeypatch):
+    """A lean model whose message passes are all compiled (Linear, ReLU, Linear edge MLPs, float32)
+    is capped by CPU_NODES_PER_CALL_COMPILED; the same model in bf16, or a model with LayerNorm,
+    by CPU_NODES_PER_CALL."""
+    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.velocities[0]
+    steps = len(x) - 1
+    torch.manual_seed(0)
+    lean = LearnedSimulator("bsms_gnn", 2, n_levels=3, contact=True, latent=16, hidden_layers=1,
+                            core_options={"layer_norm": False})
+    layer_norm = LearnedSimulator("bsms_gnn", 2, n_levels=3, contact=True, latent=16, hidden_layers=1)
+    assert compiled_message_passing(lean, torch.float32) and not compiled_message_passing(lean, torch.bfloat16)
+    assert not compiled_message_passing(layer_norm, torch.float32)
+    nodes = scenario.n_nodes
+    monkeypatch.setattr(rollout_module, "CPU_NODES_PER_CALL", 1)  # one frame per call
+    monkeypatch.setattr(rollout_module, "CPU_NODES_PER_CALL_COMPILED", 2 * nodes + 1)  # two
+    for model, precision, expected in ((lean, "f32", -(-steps // 2)), (lean, "bf16", steps), (layer_norm, "f32", steps)):
+        calls = []
+        handle = model.core.register_forward_hook(lambda module, args, out, calls=calls: calls.append(out.shape[0]))
+        rollout(model, scenario, x[0], v[0], steps, known_positions=x, warmup=0, precision=precision,
+                frames_per_call=steps)
+        handle.remove()
+        assert len(calls) == expected, (precision, calls)
 
 
 def test_frames_that_depend_on_each_other_step_one_by_one(folder):

@@ -61,12 +61,27 @@ def edge_first_layer(linear: nn.Linear, features: Tensor, v: Tensor, index: Tens
     return out.addmm_(features.to(out.dtype), weight[:, :f].T.to(out.dtype))
 
 
+def _compilable(edge_mlp: nn.Sequential) -> bool:
+    """Whether an edge MLP's messages can be summed by the compiled loop: Linear, ReLU, Linear."""
+    return len(edge_mlp) == 3 and isinstance(edge_mlp[1], nn.ReLU) and isinstance(edge_mlp[0], nn.Linear) \
+        and isinstance(edge_mlp[2], nn.Linear)
+
+
+def compiled_message_passing(model: nn.Module, dtype: torch.dtype) -> bool:
+    """Whether every message pass of ``model`` sums its messages in the compiled loop at
+    inference on a CPU in ``dtype`` (float32 only, and the library built): such a model keeps
+    no (E, H) per-edge activations, whatever the size of the graph."""
+    blocks = [m for m in model.modules() if isinstance(m, MessagePassingBlock)]
+    return dtype == torch.float32 and bool(blocks) and native.library() is not None \
+        and all(_compilable(edge_mlp) for block in blocks for edge_mlp in block.edge_mlps)
+
+
 def _compiled_sums(edge_mlp: nn.Sequential, features: Tensor, v: Tensor, index: Tensor) -> Tensor | None:
     """The sums over each receiver's edges of relu(first layer) by the compiled loop
     (:func:`bsms.models.native.edge_sums`), for an MLP [Linear, ReLU, Linear] at inference in
     float32 on a CPU; None elsewhere (the torch path runs)."""
-    if torch.is_grad_enabled() or len(edge_mlp) != 3 or not isinstance(edge_mlp[1], nn.ReLU) \
-            or v.device.type != "cpu" or v.dtype != torch.float32 or torch.is_autocast_enabled("cpu"):
+    if torch.is_grad_enabled() or not _compilable(edge_mlp) or v.device.type != "cpu" or v.dtype != torch.float32 \
+            or torch.is_autocast_enabled("cpu"):
         return None
     first, f, h = edge_mlp[0], features.shape[1], v.shape[1]
     weight = first.weight
