@@ -24,7 +24,8 @@ sums, edge inputs and contact edges of :mod:`bsms.models.native` and :mod:`bsms.
 torch and numpy, as ``BSMS_NATIVE=0`` runs them), timed in the same alternation: the baseline
 the compiled loops are measured against.
 
-    python benchmarks/learned_frame.py RUN [RUN ...] [--split test] [--trajectories 4] [--repeats 3] [--without-compiled]
+    python benchmarks/learned_frame.py RUN [RUN ...] [--split test] [--trajectories 4] [--repeats 3] \
+        [--without-compiled]
 """
 
 from __future__ import annotations
@@ -43,8 +44,8 @@ import torch  # noqa: E402
 
 from bsms.data import Scenario  # noqa: E402
 from bsms.graph import native as graph_native  # noqa: E402
-from bsms.models import native as model_native  # noqa: E402
 from bsms.learned_rollouts import learned_rollouts  # noqa: E402
+from bsms.models import native as model_native  # noqa: E402
 from bsms.run import dataset_folder, load_model, split_files  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 
