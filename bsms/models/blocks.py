@@ -40,18 +40,25 @@ def sum_per_receiver(messages: Tensor, receivers: Tensor, n_nodes: int) -> Tenso
     return out.index_add_(0, receivers, messages)
 
 
+def node_products(linear: nn.Linear, v: Tensor, f: int) -> Tensor:
+    """(N, 2 hidden): per node [W_r v + b | W_s v], the receiver and sender parts of an edge MLP's
+    first layer (its weight split by columns as [W_e | W_r | W_s], W_e of width ``f``)."""
+    h, weight = v.shape[1], linear.weight
+    return torch.addmm(torch.cat([linear.bias, torch.zeros_like(linear.bias)]), v,
+                       torch.cat([weight[:, f: f + h], weight[:, f + h:]]).T)
+
+
 def edge_first_layer(linear: nn.Linear, features: Tensor, v: Tensor, index: Tensor) -> Tensor:
     """``linear(cat([features, v[receivers], v[senders]], -1))`` without the concatenation.
 
     features: (E, F), v: (N, H), index: (2, E) = (senders, receivers) -> (E, hidden).
     """
-    f, h = features.shape[1], v.shape[1]
+    f = features.shape[1]
     weight = linear.weight
     senders, receivers = index
     if index.shape[1] >= v.shape[0]:  # one product per node, gathered per edge
         # rows 2i and 2i + 1 of ``products`` are W_r v_i + b and W_s v_i; each edge sums one of each
-        bias = torch.cat([linear.bias, torch.zeros_like(linear.bias)])
-        products = torch.addmm(bias, v, torch.cat([weight[:, f: f + h], weight[:, f + h:]]).T)
+        products = node_products(linear, v, f)
         pairs = torch.stack([2 * receivers, 2 * senders + 1], dim=1)
         out = nn.functional.embedding_bag(pairs, products.view(2 * v.shape[0], -1), mode="sum")
     else:  # fewer edges than nodes: gather first, multiply per edge
@@ -83,11 +90,8 @@ def _compiled_sums(edge_mlp: nn.Sequential, features: Tensor, v: Tensor, index: 
     if torch.is_grad_enabled() or not _compilable(edge_mlp) or v.device.type != "cpu" or v.dtype != torch.float32 \
             or torch.is_autocast_enabled("cpu"):
         return None
-    first, f, h = edge_mlp[0], features.shape[1], v.shape[1]
-    weight = first.weight
-    products = torch.addmm(torch.cat([first.bias, torch.zeros_like(first.bias)]), v,
-                           torch.cat([weight[:, f: f + h], weight[:, f + h:]]).T)
-    return native.edge_sums(products, features, weight[:, :f], index)
+    first, f = edge_mlp[0], features.shape[1]
+    return native.edge_sums(node_products(first, v, f), features, first.weight[:, :f], index)
 
 
 def summed_messages(edge_mlp: nn.Sequential, features: Tensor, v: Tensor, index: Tensor) -> Tensor:

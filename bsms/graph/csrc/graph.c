@@ -217,6 +217,19 @@ int bsms_multi_bfs(i64 n, const i64 *ptr, const i64 *idx, i64 n_sources, const i
  * sorts over the coarse nodes (by column, then stably by row) and dropped as it is written.
  * Returns the count written; -1 when memory runs out; -2 - n when the output needs room for n. */
 
+/* The n pairs (a, b) reordered stably by key[k] (in [0, n_keys)) into (a_out, b_out); count:
+ * room for n_keys + 1 entries. */
+static void counting_sort(i64 n, i64 n_keys, const i64 *key, const i64 *a, const i64 *b, i64 *a_out, i64 *b_out,
+                          i64 *count) {
+    memset(count, 0, ((size_t)n_keys + 1) * sizeof(i64));
+    for (i64 k = 0; k < n; k++) count[key[k] + 1]++;
+    for (i64 c = 0; c < n_keys; c++) count[c + 1] += count[c];
+    for (i64 k = 0; k < n; k++) {
+        const i64 at = count[key[k]]++;
+        a_out[at] = a[k], b_out[at] = b[k];
+    }
+}
+
 /* The candidates of the run of pairs [p, q) that share row i: reach[i] x (union of reach[j]),
  * both directions, appended at a/b from k on (a == NULL: only counted). Returns the new k. */
 static i64 images_of_row(i64 p, i64 q, const i64 *rows, const i64 *cols, const i64 *indptr, const i64 *indices,
@@ -266,22 +279,8 @@ i64 bsms_coarse_images(i64 n_pairs, const i64 *rows, const i64 *cols, const i64 
             if (!a || !b || !a2 || !b2) goto done;
         }
     }
-    /* by column, into a2/b2 */
-    memset(count, 0, ((size_t)n_coarse + 1) * sizeof(i64));
-    for (i64 k = 0; k < total; k++) count[b[k] + 1]++;
-    for (i64 c = 0; c < n_coarse; c++) count[c + 1] += count[c];
-    for (i64 k = 0; k < total; k++) {
-        const i64 at = count[b[k]]++;
-        a2[at] = a[k], b2[at] = b[k];
-    }
-    /* stably by row, back into a/b: sorted by (row, col) */
-    memset(count, 0, ((size_t)n_coarse + 1) * sizeof(i64));
-    for (i64 k = 0; k < total; k++) count[a2[k] + 1]++;
-    for (i64 c = 0; c < n_coarse; c++) count[c + 1] += count[c];
-    for (i64 k = 0; k < total; k++) {
-        const i64 at = count[a2[k]]++;
-        a[at] = a2[k], b[at] = b2[k];
-    }
+    counting_sort(total, n_coarse, b, a, b, a2, b2, count);   /* by column, into a2/b2 */
+    counting_sort(total, n_coarse, a2, a2, b2, a, b, count);  /* stably by row: sorted by (row, col) */
     written = 0;
     for (i64 k = 0; k < total; k++)
         if (k == 0 || a[k] != a[k - 1] || b[k] != b[k - 1]) {

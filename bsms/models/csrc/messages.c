@@ -27,50 +27,31 @@
         for (int64_t j = 0; j < (H); ++j) o[j] += h[j] > 0.0f ? h[j] : 0.0f;               \
     }
 
-static void sums_32(int64_t n_edges, int64_t n_features, const int64_t *senders, const int64_t *receivers,
-                    const float *products, const float *features, const float *weight_t, float *out) {
-    EDGE_LOOP(32)
-}
-
-static void sums_64(int64_t n_edges, int64_t n_features, const int64_t *senders, const int64_t *receivers,
-                    const float *products, const float *features, const float *weight_t, float *out) {
-    EDGE_LOOP(64)
-}
-
-static void sums_128(int64_t n_edges, int64_t n_features, const int64_t *senders, const int64_t *receivers,
-                     const float *products, const float *features, const float *weight_t, float *out) {
-    EDGE_LOOP(128)
-}
+/* One function per width: a width known at compile time unrolls and vectorises the inner loops
+ * (32, 64, 128, the widths bsms trains); any other width runs the same loop on a variable-length row. */
+#define SUMS(NAME, H)                                                                                       \
+    static void NAME(int64_t hidden, int64_t n_edges, int64_t n_features, const int64_t *senders,           \
+                     const int64_t *receivers, const float *products, const float *features,              \
+                     const float *weight_t, float *out) {                                                 \
+        (void)hidden;                                                                                     \
+        EDGE_LOOP(H)                                                                                      \
+    }
+SUMS(sums_32, 32)
+SUMS(sums_64, 64)
+SUMS(sums_128, 128)
+SUMS(sums_any, hidden)
 
 /* hidden: H, at most 1024. Returns 0, or 1 for a width it does not take. */
 int bsms_edge_sums(int64_t n_edges, int64_t hidden, int64_t n_features, const int64_t *senders,
                    const int64_t *receivers, const float *products, const float *features,
                    const float *weight_t, float *out) {
-    if (hidden == 32) {
-        sums_32(n_edges, n_features, senders, receivers, products, features, weight_t, out);
-    } else if (hidden == 64) {
-        sums_64(n_edges, n_features, senders, receivers, products, features, weight_t, out);
-    } else if (hidden == 128) {
-        sums_128(n_edges, n_features, senders, receivers, products, features, weight_t, out);
-    } else if (hidden > 0 && hidden <= 1024) {
-        const int64_t H = hidden;
-        for (int64_t k = 0; k < n_edges; ++k) {
-            const float *pr = products + receivers[k] * 2 * H;
-            const float *ps = products + senders[k] * 2 * H + H;
-            const float *f = features + k * n_features;
-            float h[1024];
-            for (int64_t j = 0; j < H; ++j) h[j] = pr[j] + ps[j];
-            for (int64_t c = 0; c < n_features; ++c) {
-                const float x = f[c];
-                const float *w = weight_t + c * H;
-                for (int64_t j = 0; j < H; ++j) h[j] += x * w[j];
-            }
-            float *o = out + receivers[k] * H;
-            for (int64_t j = 0; j < H; ++j) o[j] += h[j] > 0.0f ? h[j] : 0.0f;
-        }
-    } else {
-        return 1;
-    }
+    if (hidden < 1 || hidden > 1024) return 1;
+    void (*sums)(int64_t, int64_t, int64_t, const int64_t *, const int64_t *, const float *, const float *,
+                 const float *, float *) = hidden == 32    ? sums_32
+                                           : hidden == 64  ? sums_64
+                                           : hidden == 128 ? sums_128
+                                                           : sums_any;
+    sums(hidden, n_edges, n_features, senders, receivers, products, features, weight_t, out);
     return 0;
 }
 
