@@ -5,7 +5,10 @@ checkpoint), then scores the mean of their predicted positions (per node and fra
 way. Where the mean scores far below each run, the runs err differently and more runs (or
 seeds) would pay; where it scores about as each, their error is shared: what the data or the
 inputs cannot tell them. Prints one row per run and one for the mean (``vs at rest`` per
-trajectory, its mean, the RMSE over all steps relative to the body size), then ends with exactly
+trajectory, its mean, the RMSE over all steps relative to the body size), then how far the runs
+disagree (:func:`bsms.ensemble.spread`, relative to the body size, per trajectory) and its rank
+correlation with the mean's error across trajectories (whether the spread, which needs no
+solver, tells which rollouts to distrust), then ends with exactly
 
     ensemble: vs at rest E of the mean of N runs, each R0-R1
 
@@ -25,7 +28,9 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+from scipy.stats import spearmanr  # noqa: E402
 
+from bsms.ensemble import spread  # noqa: E402
 from bsms.fields import world_positions  # noqa: E402
 from bsms.learned_rollouts import learned_rollouts  # noqa: E402
 from bsms.motion import skill  # noqa: E402
@@ -84,6 +89,12 @@ def main(argv=None) -> int:
         return 0
     mean = [score(np.mean([p[k] for p in predictions], axis=0), t, spec) for k, t in enumerate(trajectories)]
     print(row(f"mean of {len(args.runs)}", mean))
+    spreads = [spread(np.stack([p[k] for p in predictions]), free_nodes(t))[1] / body_size(t.mesh.nodes)
+               for k, t in enumerate(trajectories)]
+    errors = [m["rel_all"] for m in mean]
+    correlation = spearmanr(spreads, errors).statistic if len(spreads) > 2 else float("nan")
+    print(f"spread of the runs / body size: {np.mean(spreads):.3g} ({', '.join(f'{v:.2g}' for v in spreads)}); "
+          f"its rank correlation with the mean's error over the {len(spreads)} trajectories: {correlation:.2f}")
     print(f"ensemble: vs at rest {np.mean([m['vs_rest'] for m in mean]):.3g} of the mean of {len(args.runs)} runs, "
           f"each {min(each):.3g}-{max(each):.3g}")
     return 0

@@ -15,6 +15,12 @@ runs the same setup: ``solver.xdmf`` (+ .h5) holds its body nodes at the same fr
 prediction and truth side by side in ParaView), and ``summary.json`` the error, the error of
 predicting no motion (``rest_rel_all``), their ratio ``vs_rest``, both split into rigid and
 deformation parts (:mod:`bsms.motion`), and the speed-up (the error is drawn in the GIF).
+An ensemble folder (:mod:`bsms.ensemble`) answers with its members' mean, timed as such; each
+member is then also rolled out alone (untimed) and how far they disagree is reported: per node
+and frame the root mean square distance of the members' positions from their mean (``spread``
+in ``prediction.xdmf``) and, over the free nodes and every frame after the first, relative to the
+body size (``spread_rel_all`` in ``summary.json``): where the members disagree, none is to be
+trusted.
 """
 
 from __future__ import annotations
@@ -33,6 +39,8 @@ from bsms import viz
 from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.data import NodeType, Scenario
+from bsms.ensemble import spread as ensemble_spread
+from bsms.models.ensemble import Ensemble
 from bsms.motion import skill
 from bsms.rollout import DEFAULT_BOUND, body_size, rollout_metrics, rollouts
 from bsms.run import load_model, resolve_device, run_dataset_config
@@ -133,12 +141,14 @@ def _place(paths: list[Path], config, dconfig: dict, overrides: dict | None, ste
 
 
 def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder: Path, solver: bool,
-             bound: float) -> dict:
-    """What one rollout did (and, with ``solver``, its error and speed-up against the MPM solver);
-    writes its outputs and summary.json into ``folder``."""
+             bound: float, members=None) -> dict:
+    """What one rollout did (and, with ``solver``, its error and speed-up against the MPM solver;
+    with ``members``, the rollouts of an ensemble's members alone, how far they disagree); writes
+    its outputs and summary.json into ``folder``."""
     scenario, cells = placed.scenario, _reported_cells(placed.scene)
     n = int(cells.max()) + 1  # the given meshes' nodes: the body's first ones (datagen.refine)
     predicted = result.positions[:, :n]
+    free, size = scenario.node_type[:n] == NodeType.FREE, body_size(placed.scene.body.nodes[:n])
     summary = {
         "run": str(run_dir), "meshes": [str(p) for p in placed.paths], "nodes": nodes,
         "body_nodes": scenario.n_body,
@@ -148,6 +158,10 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
         "seconds_per_step": result.seconds_per_step, "scene": placed.resolved["scene"],
         "params": placed.resolved["params"], "out": str(folder),
     }
+    spread = None
+    if members is not None:
+        spread, summary["spread_all"] = ensemble_spread(np.stack([m.positions[:, :n] for m in members]), free)
+        summary.update(members=len(members), spread_rel_all=summary["spread_all"] / size)
     truth = None
     if solver:
         start = time.perf_counter()
@@ -155,14 +169,12 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
         summary["solver_seconds"] = time.perf_counter() - start
         summary["solver_seconds_per_step"] = trajectory.wall_time / placed.steps
         truth = trajectory.positions[:, :n]
-        free = scenario.node_type[:n] == NodeType.FREE
-        size = body_size(placed.scene.body.nodes[:n])
         metrics = rollout_metrics(predicted, truth, free, size, bound)
         summary.update({k: metrics[k] for k in ("rmse_1", "rmse_50", "rmse_all", "rel_all", "unstable_step")})
         summary.update(skill(predicted, truth, free, size, metrics["rel_all"]))
         summary["speedup"] = summary["solver_seconds_per_step"] / result.seconds_per_step
     folder.mkdir(parents=True, exist_ok=True)
-    _write_outputs(folder, placed.scene, cells, predicted, truth, placed.frame_dt, placed.obstacle_path)
+    _write_outputs(folder, placed.scene, cells, predicted, truth, placed.frame_dt, placed.obstacle_path, spread)
     with atomic_path(folder / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=float))
     return summary
@@ -220,9 +232,15 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     results = rollouts(model, [p.scenario for p in placed], [p.x0 for p in placed], [p.v0 for p in placed],
                        [p.steps for p in placed], [p.known for p in placed], device=device, progress=progress,
                        frames_per_call=max(p.steps for p in placed))  # independent frames (graph.from_rest)
+    members = [None] * len(placed)
+    if isinstance(model, Ensemble):  # each member alone, untimed: how far they disagree
+        members = list(zip(*[rollouts(member, [p.scenario for p in placed], [p.x0 for p in placed],
+                                      [p.v0 for p in placed], [p.steps for p in placed], [p.known for p in placed],
+                                      device=device, frames_per_call=max(p.steps for p in placed))
+                             for member in model.members], strict=True))
     folders = _subfolders(folder, paths) if separately else [folder]
-    summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound)
-                 for p, result, where in zip(placed, results, folders, strict=True)]
+    summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound, alone)
+                 for p, result, where, alone in zip(placed, results, folders, members, strict=True)]
     if not separately:
         return summaries[0]
     summary = {"run": str(run_dir), "out": str(folder), "rollouts": summaries}
@@ -238,9 +256,9 @@ def _reported_cells(scene) -> np.ndarray:
 
 
 def _write_outputs(folder: Path, scene, cells: np.ndarray, predicted: np.ndarray, truth, frame_dt: float,
-                   obstacle_path: np.ndarray | None = None) -> None:
+                   obstacle_path: np.ndarray | None = None, spread: np.ndarray | None = None) -> None:
     times = frame_dt * np.arange(len(predicted))
-    data = {}
+    data = {} if spread is None else {"spread": spread}
     if truth is not None:
         data["error"] = np.linalg.norm(predicted - truth[: len(predicted)], axis=-1)
     viz.write_xdmf(folder / "prediction.xdmf", cells, predicted, times, data)
@@ -296,6 +314,9 @@ def _describe(summary: dict) -> str:
         line += (f"; against the solver: RMSE {summary['rmse_all']:.3g} m ({summary['rel_all']:.3g} of the body "
                  f"size; {summary['vs_rest']:.3g} of predicting no motion), speed-up {summary['speedup']:.3g}x "
                  f"(the solver at CFL {summary['solver_cfl']:g})")
+    if "members" in summary:
+        line += (f"; the mean of {summary['members']} members, who disagree by {summary['spread_rel_all']:.3g} "
+                 f"of the body size")
     if not summary["finite"]:
         line += "; the rollout went non-finite"
     return line

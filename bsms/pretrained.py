@@ -10,6 +10,10 @@ that every command taking a run reads (``bsms.infer``, ``bsms.evaluate``):
 - ``dataset.json``: the generating dataset config (the family, its ranges and the solver
   settings that inference places meshes with and ``--solver`` checks against);
 - ``metrics.csv``: the training log, where the run has one.
+
+``python -m bsms.pretrained RUN RUN ... OUT`` writes an ensemble folder (:mod:`bsms.ensemble`):
+each run exported as above into ``OUT/members/<k>-<run name>``, and ``OUT/ensemble.yaml``
+listing them, written last; the runs must share their graph options and their family's scene.
 """
 
 from __future__ import annotations
@@ -25,10 +29,11 @@ import yaml
 from bsms.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from bsms.config import ConfigError, build, to_dict
 from bsms.data import saved_graph_options
+from bsms.ensemble import ENSEMBLE_FILE, check_members, is_ensemble
 from bsms.run import Config, checkpoint_path, find_checkpoint, run_dataset_config
 from datagen.atomic import atomic_path
 
-__all__ = ["KEEP", "export", "main"]
+__all__ = ["KEEP", "export", "export_ensemble", "main"]
 
 KEEP = ("format", "config", "dim", "fields", "step", "best_valid", "seconds", "model")
 """The checkpoint entries a pretrained model keeps (inference needs no optimiser state)."""
@@ -40,12 +45,7 @@ def export(run_dir, out, which: str = "best") -> Path:
     run_dir, out = Path(run_dir), Path(out)
     if out.resolve() == run_dir.resolve():
         raise CheckpointError(f"export {run_dir} into another folder than the run itself")
-    state = load_checkpoint(find_checkpoint(run_dir, which))
-    try:
-        config = build(Config, {**state["config"], "graph": saved_graph_options(state["config"].get("graph"))})
-    except ConfigError as exc:
-        raise CheckpointError(f"run {run_dir} holds a config this bsms cannot read ({exc})") from None
-    dataset = run_dataset_config(run_dir, config)
+    state, config, dataset = _run(run_dir, which)
     slim = {key: state[key] for key in KEEP if key in state}
     target = checkpoint_path(out, "best")
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -59,18 +59,55 @@ def export(run_dir, out, which: str = "best") -> Path:
     return target
 
 
+def _run(run_dir: Path, which: str) -> tuple[dict, Config, dict]:
+    """(checkpoint dict, Config, dataset config) of a trained run folder."""
+    if is_ensemble(run_dir):
+        raise CheckpointError(f"{run_dir} is an ensemble; give its members' runs to join them into another")
+    state = load_checkpoint(find_checkpoint(run_dir, which))
+    try:
+        config = build(Config, {**state["config"], "graph": saved_graph_options(state["config"].get("graph"))})
+    except ConfigError as exc:
+        raise CheckpointError(f"run {run_dir} holds a config this bsms cannot read ({exc})") from None
+    return state, config, run_dataset_config(run_dir, config)
+
+
+def export_ensemble(run_dirs, out, which: str = "best") -> list[Path]:
+    """Write the ensemble folder ``out`` of runs ``run_dirs`` (each's checkpoint ``which``):
+    members first, ``ensemble.yaml`` last; returns the members' checkpoint paths. Raises
+    CheckpointError naming the run that cannot join (another graph or scene, no checkpoint)."""
+    run_dirs, out = [Path(r) for r in run_dirs], Path(out)
+    if len(run_dirs) < 2:
+        raise CheckpointError("an ensemble joins at least two runs")
+    loaded = [_run(run_dir, which) for run_dir in run_dirs]
+    check_members(run_dirs, [config for _, config, _ in loaded], [dataset for _, _, dataset in loaded])
+    names = [f"members/{k}-{config.name}" for k, (_, config, _) in enumerate(loaded)]
+    paths = [export(run_dir, out / name, which) for run_dir, name in zip(run_dirs, names, strict=True)]
+    for name in ("config.yaml", "dataset.json"):
+        with atomic_path(out / name) as tmp:
+            tmp.write_text((out / names[0] / name).read_text())
+    with atomic_path(out / ENSEMBLE_FILE) as tmp:
+        tmp.write_text("# the members of this ensemble, averaged frame by frame (bsms.ensemble)\n"
+                       + yaml.safe_dump({"members": names}, sort_keys=False))
+    return paths
+
+
 def main(argv=None, prog: str = "python -m bsms.pretrained") -> int:
     parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
-    parser.add_argument("run", type=Path, help="the trained run folder")
+    parser.add_argument("runs", type=Path, nargs="+", metavar="RUN",
+                        help="the trained run folder (several: an ensemble of them)")
     parser.add_argument("out", type=Path, help="the pretrained folder to write, e.g. pretrained/press2d")
     parser.add_argument("--which", default="best", choices=("best", "latest"), help="checkpoint (default best)")
     args = parser.parse_args(argv)
     try:
-        path = export(args.run, args.out, args.which)
+        if len(args.runs) == 1:
+            paths = [export(args.runs[0], args.out, args.which)]
+        else:
+            paths = export_ensemble(args.runs, args.out, args.which)
     except (CheckpointError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"wrote {args.out} ({path.stat().st_size / 2**20:.2f} MB of weights)")
+    members = f", an ensemble of {len(paths)}" if len(paths) > 1 else ""
+    print(f"wrote {args.out} ({sum(p.stat().st_size for p in paths) / 2**20:.2f} MB of weights{members})")
     return 0
 
 

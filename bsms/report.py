@@ -85,6 +85,12 @@ def write_tables(out: Path, rows: list[dict], columns=COLUMNS) -> None:
         tmp.write_text(table(rows, columns) + "\n")
 
 
+def _members(state: dict) -> str:
+    """How many members an ensemble (:mod:`bsms.ensemble`) averages, where the model is one."""
+    members = state.get("members")
+    return f" (the first of an ensemble of {len(members)}, averaged frame by frame)" if members else ""
+
+
 def heading(config, state, options, n_files: int, dataset_name: str, spec) -> list[str]:
     steps = "all frames" if options.steps is None else f"{options.steps} steps"
     errors = "Errors are position RMSE over free body nodes (m)" if spec.is_lagrangian else (
@@ -92,7 +98,8 @@ def heading(config, state, options, n_files: int, dataset_name: str, spec) -> li
         "data's units; every field under 'RMSE per field')")
     return [
         f"# Evaluation of run `{config.name}`", "",
-        f"Model `{config.model.name}` after {int(state['step'])} training steps; {n_files} `{options.split}` "
+        f"Model `{config.model.name}` after {int(state['step'])} training steps"
+        f"{_members(state)}; {n_files} `{options.split}` "
         f"trajectories of dataset `{dataset_name}`; rollouts from frame 0 over {steps}. {errors}; times are wall "
         f"seconds on this machine, measured in this run on {torch.get_num_threads()} CPU thread(s), learned models "
         "and solver alike.",

@@ -21,6 +21,7 @@ import yaml
 from bsms.checkpoint import CheckpointError, load_checkpoint
 from bsms.config import ConfigError, apply_overrides, at_least, build, load, to_dict
 from bsms.data import GraphOptions, NoiseOptions, saved_graph_options
+from bsms.ensemble import is_ensemble, load_ensemble
 from bsms.fields import FieldSpec
 from bsms.models.config import ModelConfig
 from bsms.models.simulator import LearnedSimulator
@@ -286,11 +287,12 @@ def saved_options(run_dir) -> EvaluateConfig | None:
 
 
 def find_checkpoint(run_dir, which: str = "best") -> Path:
-    """The checkpoint ``which`` of a run folder, falling back from best to latest."""
+    """The checkpoint ``which`` of a run folder, falling back from best to latest and from latest
+    to best (a pretrained folder, :mod:`bsms.pretrained`, holds its one checkpoint as best)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise CheckpointError(f"run folder {run_dir} does not exist; train one with python train.py CONFIG")
-    order = [which] + (["latest"] if which == "best" else [])
+    order = [which] + (["latest"] if which == "best" else ["best"])
     for name in order:
         if checkpoint_path(run_dir, name).is_file():
             return checkpoint_path(run_dir, name)
@@ -408,8 +410,12 @@ def build_model(config: Config, dim: int, fields: FieldSpec | None = None) -> Le
 
 
 def load_model(source, which: str = "best", device="cpu") -> tuple[LearnedSimulator, Config, dict]:
-    """(model in eval mode on ``device``, Config, checkpoint dict) from a run folder or a checkpoint file."""
+    """(model in eval mode on ``device``, Config, checkpoint dict) from a run folder, a checkpoint
+    file or an ensemble folder (:mod:`bsms.ensemble`: an :class:`~bsms.models.ensemble.Ensemble`,
+    the first member's Config and checkpoint dict, ``members`` added)."""
     path = Path(source)
+    if path.is_dir() and is_ensemble(path):
+        return load_ensemble(path, which, device, load_model, run_dataset_config)
     path = path if path.is_file() else find_checkpoint(path, which)
     state = load_checkpoint(path)
     try:
