@@ -27,6 +27,7 @@ as accurate, one of them strictly.
 
     python benchmarks/surrogate_vs_solver.py [--family press | --pretrained DIR] [--trajectories N] [--workers K]
 
+``--pretrained DIR`` may be an ensemble folder (``python -m bsms.pretrained RUN RUN ... OUT``).
 ``--family NAME`` takes ``pretrained/<NAME>2d``; with ``--docs`` the table and chart of a family
 other than press are copied under its name (``docs/surrogate_vs_solver_<NAME>.md``).
 """
@@ -44,6 +45,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 
+from bsms.ensemble import ENSEMBLE_FILE, is_ensemble, member_folders  # noqa: E402
 from bsms.evaluate import evaluate  # noqa: E402
 from bsms.run import EvaluateConfig, load_model  # noqa: E402
 from bsms.solver_runs import SOLVER_SETTINGS  # noqa: E402
@@ -66,11 +68,16 @@ def ensure_test_split(dconfig: dict, root: Path) -> None:
 
 
 def copy_run(pretrained: Path, run: Path) -> None:
-    """The pretrained folder copied to ``run`` (evaluation writes beside the weights)."""
+    """The pretrained folder copied to ``run`` (evaluation writes beside the weights); an
+    ensemble folder (:mod:`bsms.ensemble`) with its members."""
     run.mkdir(parents=True, exist_ok=True)
-    for name in ("config.yaml", "dataset.json", "metrics.csv"):
+    for name in ("config.yaml", "dataset.json", "metrics.csv", ENSEMBLE_FILE):
         if (pretrained / name).is_file():
             shutil.copyfile(pretrained / name, run / name)
+    if is_ensemble(pretrained):
+        for member in member_folders(pretrained):
+            copy_run(member, run / member.relative_to(pretrained))
+        return
     (run / "checkpoints").mkdir(exist_ok=True)
     shutil.copyfile(pretrained / "checkpoints" / "best.pt", run / "checkpoints" / "best.pt")
 
@@ -100,7 +107,7 @@ def main(argv=None) -> None:
         parser.error("give --family or --pretrained, not both")
     family = args.family or "press"
     args.pretrained = args.pretrained or ROOT / "pretrained" / f"{family}2d"
-    if not (args.pretrained / "checkpoints" / "best.pt").is_file():
+    if not (args.pretrained / "checkpoints" / "best.pt").is_file() and not is_ensemble(args.pretrained):
         parser.error(f"no pretrained model at {args.pretrained} (checkpoints/best.pt); export one with "
                      f"python -m bsms.pretrained RUN {args.pretrained}")
     suffix = "" if family == "press" else f"_{family}"

@@ -177,3 +177,17 @@ def test_evaluate_reports_the_ensemble_as_the_mean_of_its_members(runs, joined, 
     assert row["vs_rest"] == pytest.approx(np.mean([m["vs_rest"] for m, _ in scored]), rel=1e-9)
     report = (joined / "report.md").read_text()
     assert "(the first of an ensemble of 2, averaged frame by frame)" in report
+
+
+def test_the_surrogate_benchmark_copies_an_ensemble_with_its_members(joined, tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from surrogate_vs_solver import copy_run
+
+    copy_run(joined, tmp_path / "run")
+    copied, original = load_model(tmp_path / "run")[0], load_model(joined)[0]
+    assert isinstance(copied, Ensemble) and len(copied.members) == 2
+    for (key, value), (key2, value2) in zip(copied.state_dict().items(), original.state_dict().items(), strict=True):
+        assert key == key2 and torch.equal(value, value2)
