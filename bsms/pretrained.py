@@ -56,6 +56,9 @@ def export(run_dir, out, which: str = "best") -> Path:
         tmp.write_text(json.dumps(dataset, indent=1))
     if (run_dir / "metrics.csv").is_file():
         shutil.copyfile(run_dir / "metrics.csv", out / "metrics.csv")
+    if is_ensemble(out):  # an ensemble exported here before: this model replaces it
+        (out / ENSEMBLE_FILE).unlink()
+        shutil.rmtree(out / "members", ignore_errors=True)
     return target
 
 
@@ -78,13 +81,20 @@ def export_ensemble(run_dirs, out, which: str = "best") -> list[Path]:
     run_dirs, out = [Path(r) for r in run_dirs], Path(out)
     if len(run_dirs) < 2:
         raise CheckpointError("an ensemble joins at least two runs")
+    for run_dir in run_dirs:
+        if out.resolve() == run_dir.resolve() or out.resolve() in run_dir.resolve().parents:
+            raise CheckpointError(f"run {run_dir} lies in {out}: write the ensemble into a new folder (and move it "
+                                  "there after)")
     loaded = [_run(run_dir, which) for run_dir in run_dirs]
     check_members(run_dirs, [config for _, config, _ in loaded], [dataset for _, _, dataset in loaded])
     names = [f"members/{k}-{config.name}" for k, (_, config, _) in enumerate(loaded)]
+    shutil.rmtree(out / "members", ignore_errors=True)  # members of an ensemble exported here before
     paths = [export(run_dir, out / name, which) for run_dir, name in zip(run_dirs, names, strict=True)]
     for name in ("config.yaml", "dataset.json"):
         with atomic_path(out / name) as tmp:
             tmp.write_text((out / names[0] / name).read_text())
+    shutil.rmtree(out / "checkpoints", ignore_errors=True)  # a single model exported here before
+    (out / "metrics.csv").unlink(missing_ok=True)
     with atomic_path(out / ENSEMBLE_FILE) as tmp:
         tmp.write_text("# the members of this ensemble, averaged frame by frame (bsms.ensemble)\n"
                        + yaml.safe_dump({"members": names}, sort_keys=False))

@@ -191,3 +191,18 @@ def test_the_surrogate_benchmark_copies_an_ensemble_with_its_members(joined, tmp
     assert isinstance(copied, Ensemble) and len(copied.members) == 2
     for (key, value), (key2, value2) in zip(copied.state_dict().items(), original.state_dict().items(), strict=True):
         assert key == key2 and torch.equal(value, value2)
+
+
+def test_exporting_over_an_earlier_export_replaces_it_whole(runs, tmp_path):
+    out = tmp_path / "pretrained"
+    assert export_main([str(runs[0]), str(out)]) == 0
+    assert export_main([str(runs[0]), str(runs[1]), str(out)]) == 0  # a single model, then an ensemble over it
+    assert not (out / "checkpoints").exists() and not (out / "metrics.csv").exists()
+    assert isinstance(load_model(out)[0], Ensemble)
+    assert export_main([str(runs[1]), str(out)]) == 0  # and a single model over the ensemble
+    assert not (out / ENSEMBLE_FILE).exists() and not (out / "members").exists()
+    model, config, _ = load_model(out)
+    assert not isinstance(model, Ensemble) and config.name == "b"
+    with pytest.raises(CheckpointError, match=r"run .*pretrained lies in .*pretrained: write the ensemble into a new "
+                                              r"folder \(and move it there after\)"):
+        export_ensemble([out, runs[0]], out)
