@@ -229,15 +229,16 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     dconfig = run_dataset_config(run_dir, config)
     groups = [[p] for p in paths] if separately else [paths]
     placed = [_place(group, config, dconfig, overrides, steps) for group in groups]
-    results = rollouts(model, [p.scenario for p in placed], [p.x0 for p in placed], [p.v0 for p in placed],
-                       [p.steps for p in placed], [p.known for p in placed], device=device, progress=progress,
-                       frames_per_call=max(p.steps for p in placed))  # independent frames (graph.from_rest)
+
+    def roll_out(m, shown: bool):  # independent frames (graph.from_rest): all in one call
+        return rollouts(m, [p.scenario for p in placed], [p.x0 for p in placed], [p.v0 for p in placed],
+                        [p.steps for p in placed], [p.known for p in placed], device=device, progress=shown,
+                        frames_per_call=max(p.steps for p in placed))
+
+    results = roll_out(model, progress)
     members = [None] * len(placed)
     if isinstance(model, Ensemble):  # each member alone, untimed: how far they disagree
-        members = list(zip(*[rollouts(member, [p.scenario for p in placed], [p.x0 for p in placed],
-                                      [p.v0 for p in placed], [p.steps for p in placed], [p.known for p in placed],
-                                      device=device, frames_per_call=max(p.steps for p in placed))
-                             for member in model.members], strict=True))
+        members = list(zip(*[roll_out(member, False) for member in model.members], strict=True))
     folders = _subfolders(folder, paths) if separately else [folder]
     summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound, alone)
                  for p, result, where, alone in zip(placed, results, folders, members, strict=True)]
