@@ -8,7 +8,9 @@ inputs cannot tell them. Prints one row per run and one for the mean (``vs at re
 trajectory, its mean, the RMSE over all steps relative to the body size), then how far the runs
 disagree (:func:`bsms.ensemble.spread`, relative to the body size, per trajectory) and its rank
 correlation with the mean's error across trajectories (whether the spread, which needs no
-solver, tells which rollouts to distrust), then ends with exactly
+solver, tells which rollouts to distrust). ``--weights W ...`` adds a row per W for the mean that
+weighs the first run W and the others 1 - W between them (choose W on the validation split, never
+on the test split). Ends with exactly
 
     ensemble: vs at rest E of the mean of N runs, each R0-R1
 
@@ -16,7 +18,7 @@ solver, tells which rollouts to distrust), then ends with exactly
 split that ``benchmarks/zero_shot_set.py`` stores); one run is then enough (no mean row).
 
     python benchmarks/ensemble.py RUN [RUN ...] [--split test] [--trajectories 8] [--checkpoint latest]
-        [--data FOLDER]
+        [--data FOLDER] [--weights W ...]
 """
 
 from __future__ import annotations
@@ -63,7 +65,11 @@ def main(argv=None) -> int:
     parser.add_argument("--checkpoint", default="latest", choices=["best", "latest"])
     parser.add_argument("--data", type=Path, default=None,
                         help="score on this dataset folder (default: the first run's dataset)")
+    parser.add_argument("--weights", type=float, nargs="+", default=[], metavar="W",
+                        help="also score means weighing the first run W (the others share 1 - W)")
     args = parser.parse_args(argv)
+    if any(not 0 <= w <= 1 for w in args.weights):
+        parser.error(f"--weights must lie in [0, 1], got {args.weights}")
     if len(args.runs) < 2 and args.data is None:
         parser.error("give at least two runs to average (or --data FOLDER to score one)")
     models = [load_model(run, args.checkpoint) for run in args.runs]
@@ -89,6 +95,11 @@ def main(argv=None) -> int:
         return 0
     mean = [score(np.mean([p[k] for p in predictions], axis=0), t, spec) for k, t in enumerate(trajectories)]
     print(row(f"mean of {len(args.runs)}", mean))
+    for w in args.weights:
+        rest = (1 - w) / (len(predictions) - 1)
+        weighted = [score(w * predictions[0][k] + rest * sum(p[k] for p in predictions[1:]), t, spec)
+                    for k, t in enumerate(trajectories)]
+        print(row(f"weight {w:g} on {models[0][1].name}", weighted))
     spreads = [spread(np.stack([p[k] for p in predictions]), free_nodes(t))[1] / body_size(t.mesh.nodes)
                for k, t in enumerate(trajectories)]
     errors = [m["rel_all"] for m in mean]

@@ -55,3 +55,16 @@ def test_one_run_scored_on_another_folder_matches_its_rows_on_its_own(tiny_datas
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[2] == own and len(lines) == 4
     assert lines[-1] == f"ensemble: vs at rest {float(own.split('|')[2].split()[0]):.3g} of 1 run on {other}"
+
+
+def test_weighted_means_run_from_the_first_run_to_the_others(tiny_dataset, tmp_path, capsys):
+    """--weights 1 scores the first run's rollouts, 0 the second's, 0.5 the plain mean."""
+    first, second = train(tiny_dataset, tmp_path, "a", 0), train(tiny_dataset, tmp_path, "b", 1)
+    assert ensemble.main([first, second, "--trajectories", "2", "--weights", "1", "0", "0.5"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    cells = [line.split("|")[2:] for line in lines[2:8]]
+    assert lines[5].startswith("| weight 1 on a |") and cells[3] == cells[0]
+    assert lines[6].startswith("| weight 0 on a |") and cells[4] == cells[1]
+    assert lines[7].startswith("| weight 0.5 on a |") and cells[5] == cells[2]
+    with pytest.raises(SystemExit):
+        ensemble.main([first, second, "--weights", "1.5"])
