@@ -57,19 +57,24 @@ def member_folders(folder) -> list[Path]:
     return folders
 
 
+def _differ(a: dict, b: dict) -> list[str]:
+    """The keys whose values differ between ``a`` and ``b`` (present in one only counts), sorted."""
+    return sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+
+
 def check_members(labels: list, configs: list, scenes: list[dict]) -> None:
     """Raise CheckpointError naming the first member (of ``labels``) whose graph options or scene
     (its dataset config, :data:`SCENE_KEYS_IGNORED` aside) differ from the first member's."""
-    graph0 = to_dict(configs[0].graph)
-    scene0 = {k: v for k, v in scenes[0].items() if k not in SCENE_KEYS_IGNORED}
+    def scene_of(dataset: dict) -> dict:
+        return {k: v for k, v in dataset.items() if k not in SCENE_KEYS_IGNORED}
+
+    graph0, scene0 = to_dict(configs[0].graph), scene_of(scenes[0])
     for label, config, scene in zip(labels[1:], configs[1:], scenes[1:], strict=True):
-        graph = to_dict(config.graph)
-        differ = sorted(k for k in graph0.keys() | graph.keys() if graph0.get(k) != graph.get(k))
+        differ = _differ(graph0, to_dict(config.graph))
         if differ:
             raise CheckpointError(f"ensemble member {label} builds another graph than {labels[0]} (graph."
                                   f"{', graph.'.join(differ)}): members must share their graph options")
-        scene = {k: v for k, v in scene.items() if k not in SCENE_KEYS_IGNORED}
-        differ = sorted(k for k in scene0.keys() | scene.keys() if scene0.get(k) != scene.get(k))
+        differ = _differ(scene0, scene_of(scene))
         if differ:
             raise CheckpointError(f"ensemble member {label} learned another scene than {labels[0]} (dataset "
                                   f"{', '.join(differ)} differ): members must be trained on one family's setting")

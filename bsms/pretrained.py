@@ -45,7 +45,16 @@ def export(run_dir, out, which: str = "best") -> Path:
     run_dir, out = Path(run_dir), Path(out)
     if out.resolve() == run_dir.resolve():
         raise CheckpointError(f"export {run_dir} into another folder than the run itself")
-    state, config, dataset = _run(run_dir, which)
+    target = _write(run_dir, out, *_run(run_dir, which))
+    if is_ensemble(out):  # an ensemble exported here before: this model replaces it
+        (out / ENSEMBLE_FILE).unlink()
+        shutil.rmtree(out / "members", ignore_errors=True)
+    return target
+
+
+def _write(run_dir: Path, out: Path, state: dict, config: Config, dataset: dict) -> Path:
+    """The files of a pretrained folder ``out`` of run ``run_dir`` (:func:`_run`'s three); returns
+    the checkpoint's path."""
     slim = {key: state[key] for key in KEEP if key in state}
     target = checkpoint_path(out, "best")
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -56,9 +65,6 @@ def export(run_dir, out, which: str = "best") -> Path:
         tmp.write_text(json.dumps(dataset, indent=1))
     if (run_dir / "metrics.csv").is_file():
         shutil.copyfile(run_dir / "metrics.csv", out / "metrics.csv")
-    if is_ensemble(out):  # an ensemble exported here before: this model replaces it
-        (out / ENSEMBLE_FILE).unlink()
-        shutil.rmtree(out / "members", ignore_errors=True)
     return target
 
 
@@ -89,7 +95,7 @@ def export_ensemble(run_dirs, out, which: str = "best") -> list[Path]:
     check_members(run_dirs, [config for _, config, _ in loaded], [dataset for _, _, dataset in loaded])
     names = [f"members/{k}-{config.name}" for k, (_, config, _) in enumerate(loaded)]
     shutil.rmtree(out / "members", ignore_errors=True)  # members of an ensemble exported here before
-    paths = [export(run_dir, out / name, which) for run_dir, name in zip(run_dirs, names, strict=True)]
+    paths = [_write(run_dir, out / name, *run) for run_dir, name, run in zip(run_dirs, names, loaded, strict=True)]
     for name in ("config.yaml", "dataset.json"):
         with atomic_path(out / name) as tmp:
             tmp.write_text((out / names[0] / name).read_text())

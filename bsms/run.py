@@ -414,7 +414,7 @@ def load_model(source, which: str = "best", device="cpu") -> tuple[LearnedSimula
     file or an ensemble folder (:mod:`bsms.ensemble`: an :class:`~bsms.models.ensemble.Ensemble`,
     the first member's Config and checkpoint dict, ``members`` added)."""
     path = Path(source)
-    if path.is_dir() and is_ensemble(path):
+    if is_ensemble(path):
         return load_ensemble(path, which, device, load_model, run_dataset_config)
     path = path if path.is_file() else find_checkpoint(path, which)
     state = load_checkpoint(path)
