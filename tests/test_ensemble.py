@@ -68,3 +68,4 @@ def test_weighted_means_run_from_the_first_run_to_the_others(tiny_dataset, tmp_p
     assert lines[7].startswith("| weight 0.5 on a |") and cells[5] == cells[2]
     with pytest.raises(SystemExit):
         ensemble.main([first, second, "--weights", "1.5"])
+    assert capsys.readouterr().err.strip().endswith("error: --weights must lie in [0, 1], got [1.5]")
