@@ -6,16 +6,20 @@ held where it touches the container, loaded along the penetration vectors of the
 that frame, scaled to them) -- no learning. It is the trivial answer a model with that input
 has to beat, scored as learned rollouts are (``vs at rest``: RMSE over all steps over the
 at-rest RMSE; RMSE all relative to the body size). One row per hold distance (in median rest
-edges; the first is the input's), then ends with exactly
+edges; the first is the input's) and per ``--push`` (how the penetration input puts a node back,
+``graph.push``: ``nearest`` or ``leading``, the facets that face the indenter's travel; with
+more than one, each row names it), then ends with exactly (for the first hold and push)
 
     elastic answer: vs at rest E on N trajectories (hold H edges), P ms per frame
 
     python benchmarks/elastic_answer.py --data data/press_stiff [--split test] [--hold 1.0 0.05 0.5]
+        [--push nearest leading]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import time
 from pathlib import Path
@@ -29,15 +33,16 @@ from bsms.config import ConfigError  # noqa: E402
 from bsms.data import Scenario  # noqa: E402
 from bsms.fields import FieldSpec  # noqa: E402
 from bsms.graph.elastic import HOLD, ElasticResponse  # noqa: E402
+from bsms.graph.penetration import PUSHES  # noqa: E402
 from bsms.options import GraphOptions  # noqa: E402
 from bsms.run import split_files  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 
 
-def answers(trajectory, hold: float) -> tuple[np.ndarray, float]:
+def answers(trajectory, hold: float, push: str = "nearest") -> tuple[np.ndarray, float]:
     """(T, N, d) the rest shape plus the elastic answer at every frame, and the seconds per frame
     it took (penetration and solve; the factorisation, once per mesh, not counted)."""
-    options = GraphOptions(levels=1, from_rest=True, penetration=True)
+    options = GraphOptions(levels=1, from_rest=True, penetration=True, push=push)
     scenario = Scenario.from_trajectory(trajectory, options)
     n = scenario.n_body
     elastic = ElasticResponse(scenario.rest_pos, scenario.obstacle_geometry.facets + n, n, scenario.cells,
@@ -59,6 +64,8 @@ def main(argv=None) -> int:
     parser.add_argument("--trajectories", type=int, default=None, help="at most this many (default: all)")
     parser.add_argument("--hold", type=float, nargs="+", default=[HOLD],
                         help=f"hold distances in median rest edges, the first reported last (default: {HOLD})")
+    parser.add_argument("--push", nargs="+", default=["nearest"], choices=PUSHES,
+                        help="how the penetration input puts a node back (graph.push; default: nearest)")
     args = parser.parse_args(argv)
     try:
         files = split_files(args.data, args.split)[: args.trajectories]
@@ -68,16 +75,17 @@ def main(argv=None) -> int:
     if any(t.obstacle_positions is None for t in trajectories):
         parser.error(f"{args.data}: the elastic answer needs moving obstacles (an indenter) to load the body")
     spec = FieldSpec.lagrangian(trajectories[0].mesh.dim)
-    print("| hold (median edges) | vs at rest (per trajectory) | RMSE all / body size |")
+    named = len(args.push) > 1
+    print(f"| hold (median edges){', push' if named else ''} | vs at rest (per trajectory) | RMSE all / body size |")
     print("|---|---|---|")
     summary = None
-    for hold in args.hold:
+    for hold, push in itertools.product(args.hold, args.push):
         scored, seconds = [], []
         for trajectory in trajectories:
-            predicted, per_frame = answers(trajectory, hold)
+            predicted, per_frame = answers(trajectory, hold, push)
             scored.append(score(predicted, trajectory, spec))
             seconds.append(per_frame)
-        print(row(f"{hold:g}", scored), flush=True)
+        print(row(f"{hold:g}, {push}" if named else f"{hold:g}", scored), flush=True)
         if summary is None:
             summary = (np.mean([m["vs_rest"] for m in scored]), hold, 1e3 * np.mean(seconds))
     vs, hold, ms = summary

@@ -71,6 +71,11 @@ class GraphOptions:
         outline's nearest point, else 0 (:mod:`bsms.graph.penetration`) -- the kinematic
         boundary condition an indenter imposes, which the network would otherwise have to
         infer from offsets to the obstacle's surface nodes. 2D (segment outlines) and 3D (triangles).
+    push: how ``penetration`` puts a node back: ``nearest``, the vector to the obstacle outline's
+        nearest point; ``leading``, to the nearest point of the facets that face the way the
+        obstacle has travelled from rest (outward normal . travel > 0), so that a node a box came
+        down onto goes down to its face, never sideways through a side that did not sweep over it
+        (:mod:`bsms.graph.penetration`). The same for a disk pressing straight (its leading half).
     clearance: the container (the walls around the body) leaves every graph:
         no nodes of its own, no contact edges to them; each node gets instead, as an input, the
         vector from it to the container's nearest point where that is within the contact radius,
@@ -109,6 +114,7 @@ class GraphOptions:
     displacement: bool = False
     from_rest: bool = False
     penetration: bool = False
+    push: Literal["nearest", "leading"] = "nearest"
     clearance: bool = False
     drive: bool = False
     elastic: bool = False
@@ -128,6 +134,9 @@ class GraphOptions:
         if self.elastic and not self.penetration:
             raise ConfigError(f"config key '{prefix}.elastic' loads the body where the obstacles reach into it; set "
                               f"'{prefix}.penetration: true' too, or '{prefix}.elastic: false'")
+        if self.push != "nearest" and not self.penetration:
+            raise ConfigError(f"config key '{prefix}.push' says how the penetration input puts a node back; set "
+                              f"'{prefix}.penetration: true' too, or leave '{prefix}.push' out")
         if self.elastic_residual and not (self.elastic and self.from_rest):
             raise ConfigError(f"config key '{prefix}.elastic_residual' corrects the elastic answer of a model that "
                               f"predicts from rest; set '{prefix}.elastic: true' and '{prefix}.from_rest: true' too, "

@@ -9,6 +9,12 @@ at the coming frame (winding number), and if so the vector to the nearest point 
 -- the displacement that would put the node back on the obstacle's surface, the kinematic
 boundary condition of contact. Nodes outside every obstacle get 0.
 
+``push="leading"`` (``graph.push``) takes the nearest point among the outline's facets that face
+the way the obstacle has travelled since rest only (outward normal . travel > 0): a box pressed
+deeper than a node lies from its side pushes that node down to its face, as the face that swept
+over it did, not sideways out through the side it never crossed (docs/press.md, "The way the
+indenter came").
+
 Outlines are the connected components of the (subdivided) obstacle facets -- segments in 2D,
 triangles in 3D; a component is a container when it encloses most of the body's rest nodes
 (the box's walls), and it is then left out: a body is inside its container by design.
@@ -23,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from bsms.graph.obstacles import KeptTree
 
-__all__ = ["Penetration", "Clearance", "outlines", "winding_numbers", "inside_outline", "closest_points",
+__all__ = ["PUSHES", "Penetration", "Clearance", "outlines", "winding_numbers", "inside_outline", "closest_points",
            "solid_winding_numbers", "closest_points_3d", "closest_on_facets"]
 
 
@@ -163,23 +169,68 @@ class Penetration:
     triangles (3D) in scenario node indices; n_body: body node count (nodes before it are the
     body's)."""
 
-    def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int):
+    def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int, push: str = "nearest"):
+        if push not in PUSHES:
+            raise ValueError(f"graph.push must be one of {', '.join(PUSHES)}, got {push!r}")
         self.outlines, _ = outlines(rest, facets, n_body)
+        self.push = push
+        rest = np.asarray(rest, np.float64)
+        # per outline: its nodes' rest centroid and the sign that turns each facet's normal outward
+        self._rest_centres = [rest[np.unique(o)].mean(0) for o in self.outlines]
+        self._outward = [_outward_signs([rest[o[:, i]] for i in range(o.shape[1])]) for o in self.outlines]
 
     def __call__(self, pos: np.ndarray, coming: np.ndarray, free: np.ndarray) -> np.ndarray:
         """(N, d): for free nodes at ``pos`` inside an obstacle outline placed at ``coming`` (N, d:
         where every node will be at the coming frame; only obstacle rows are read), the vector to
-        the outline's nearest point; 0 elsewhere."""
+        the outline's nearest point (``push="leading"``: of its facets facing the way it travelled
+        from rest); 0 elsewhere."""
         out = np.zeros_like(pos, dtype=np.float64)
         points = np.flatnonzero(free)
-        for outline in self.outlines:
+        for outline, centre, outward in zip(self.outlines, self._rest_centres, self._outward, strict=True):
             corners = [coming[outline[:, i]] for i in range(outline.shape[1])]
             low, high = coming[outline.ravel()].min(0), coming[outline.ravel()].max(0)
             near = points[np.all((pos[points] >= low) & (pos[points] <= high), axis=1)]  # only these can be inside
             inside = near[_inside(pos[near], corners)]
-            if len(inside):
-                out[inside] += closest_on_facets(pos[inside], corners) - pos[inside]
+            if not len(inside):
+                continue
+            if self.push == "leading":
+                corners = _leading(corners, outward, coming[np.unique(outline)].mean(0) - centre, high - low)
+            out[inside] += closest_on_facets(pos[inside], corners) - pos[inside]
         return out
+
+
+PUSHES = ("nearest", "leading")
+
+
+def _normals(corners: list[np.ndarray]) -> np.ndarray:
+    """(S, d) a normal of each facet (segments in 2D, triangles in 3D), of either sense, unnormalised."""
+    if len(corners) == 2:
+        edge = corners[1] - corners[0]
+        return np.stack([edge[:, 1], -edge[:, 0]], axis=1)
+    return np.cross(corners[1] - corners[0], corners[2] - corners[0])
+
+
+def _outward_signs(corners: list[np.ndarray]) -> np.ndarray:
+    """(S,) +1 where :func:`_normals` points out of the closed outline, -1 where it points in: a
+    point just off each facet's middle along its normal lies outside. Kept from rest: an obstacle
+    that moves rigidly keeps its facets' senses."""
+    normals = _normals(corners)
+    unit = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), np.finfo(float).tiny)
+    points = np.concatenate(corners)
+    step = 1e-6 * float(np.ptp(points, axis=0).max())
+    probe = sum(corners) / len(corners) + step * unit
+    return np.where(_inside(probe, corners), -1.0, 1.0)
+
+
+def _leading(corners: list[np.ndarray], outward: np.ndarray, travel: np.ndarray, extent: np.ndarray
+             ) -> list[np.ndarray]:
+    """The facets of ``corners`` whose outward normal has a positive part along ``travel`` (how far
+    the outline's centre has moved from rest); all of them where it has not moved (by a millionth
+    of its ``extent``)."""
+    if np.linalg.norm(travel) <= 1e-6 * float(np.max(extent)):
+        return corners
+    facing = outward * (_normals(corners) @ travel) > 0
+    return [c[facing] for c in corners]
 
 
 class Clearance:
