@@ -175,9 +175,11 @@ class Penetration:
         self.outlines, _ = outlines(rest, facets, n_body)
         self.push = push
         rest = np.asarray(rest, np.float64)
-        # per outline: its nodes' rest centroid and the sign that turns each facet's normal outward
-        self._rest_centres = [rest[np.unique(o)].mean(0) for o in self.outlines]
-        self._outward = [_outward_signs([rest[o[:, i]] for i in range(o.shape[1])]) for o in self.outlines]
+        # per outline ("leading" only): its nodes' rest centroid and the signs that turn its facets' normals outward
+        leading = push == "leading"
+        self._rest_centres = [rest[np.unique(o)].mean(0) if leading else None for o in self.outlines]
+        self._outward = [_outward_signs([rest[o[:, i]] for i in range(o.shape[1])]) if leading else None
+                         for o in self.outlines]
 
     def __call__(self, pos: np.ndarray, coming: np.ndarray, free: np.ndarray) -> np.ndarray:
         """(N, d): for free nodes at ``pos`` inside an obstacle outline placed at ``coming`` (N, d:
@@ -219,7 +221,8 @@ def _outward_signs(corners: list[np.ndarray]) -> np.ndarray:
     points = np.concatenate(corners)
     step = 1e-6 * float(np.ptp(points, axis=0).max())
     probe = sum(corners) / len(corners) + step * unit
-    return np.where(_inside(probe, corners), -1.0, 1.0)
+    inside = np.concatenate([_inside(probe[k:k + 256], corners) for k in range(0, len(probe), 256)])
+    return np.where(inside, -1.0, 1.0)  # in blocks: a 3D test holds (probes, facets, 3) at once
 
 
 def _leading(corners: list[np.ndarray], outward: np.ndarray, travel: np.ndarray, extent: np.ndarray
