@@ -70,14 +70,15 @@ def test_closest_points_on_segments_in_closed_form():
     np.testing.assert_allclose(closest_points(points, a, b), [[0, 0.5], [0.5, 1.0], [1, 1], [0.5, 0]], atol=1e-15)
 
 
-def _scene():
-    """A 1 x 1 body (rest nodes), a container box around it and a square punch over its top
-    middle, as scenario arrays: (rest, facets, n_body, punch node indices)."""
-    body = shapes.rectangle(1.0, 1.0, 0.1)
+def _scene(spacing=0.1, top=1.15):
+    """A 1 x 1 body meshed at ``spacing`` (rest nodes), a container box around it and a square
+    punch over its top middle (0.4-0.6 by 0.95-``top``), as scenario arrays: (body, rest, facets,
+    n_body, punch node indices)."""
+    body = shapes.rectangle(1.0, 1.0, spacing)
     body_nodes = body.nodes - body.nodes.min(0)
     n_body = len(body_nodes)
     box = np.array([[-1, -1], [2, -1], [2, 2], [-1, 2]], float)
-    punch = np.array([[0.4, 0.95], [0.6, 0.95], [0.6, 1.15], [0.4, 1.15]], float)
+    punch = np.array([[0.4, 0.95], [0.6, 0.95], [0.6, top], [0.4, top]], float)
     rest = np.concatenate([body_nodes, box, punch])
     ring = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
     facets = np.concatenate([ring + n_body, ring + n_body + 4])

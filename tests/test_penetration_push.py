@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 from test_penetration import CUBE_FACES, cube, square
+from test_penetration import _scene as _penetration_scene
 
 from bsms.config import ConfigError
 from bsms.data import GraphOptions, NodeType, Scenario
@@ -11,18 +12,9 @@ from datagen import shapes
 
 
 def _scene():
-    """A 1 x 1 body meshed at 0.05 (rest nodes), a container box around it and a tall square punch
-    over its top middle (0.4-0.6 by 0.95-1.55), as scenario arrays: (body, rest, facets, n_body,
-    punch node indices)."""
-    body = shapes.rectangle(1.0, 1.0, 0.05)
-    body_nodes = body.nodes - body.nodes.min(0)
-    n_body = len(body_nodes)
-    box = np.array([[-1, -1], [2, -1], [2, 2], [-1, 2]], float)
-    punch = np.array([[0.4, 0.95], [0.6, 0.95], [0.6, 1.55], [0.4, 1.55]], float)
-    rest = np.concatenate([body_nodes, box, punch])
-    ring = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
-    facets = np.concatenate([ring + n_body, ring + n_body + 4])
-    return body, rest, facets, n_body, np.arange(n_body + 4, n_body + 8)
+    """The punch scene of test_penetration on a body meshed at 0.05, the punch 0.6 tall: a node
+    pressed under it is inside, whatever its depth, and many lie nearer a side than the underside."""
+    return _penetration_scene(spacing=0.05, top=1.55)
 
 
 def _inside_punch(points, low_x, high_x, underside, top):

@@ -167,7 +167,7 @@ class Penetration:
 
     rest: (N, d) rest positions of all scenario nodes; facets: (F, d) obstacle segments (2D) or
     triangles (3D) in scenario node indices; n_body: body node count (nodes before it are the
-    body's)."""
+    body's); push: ``nearest`` or ``leading`` (``graph.push``, the module's docstring)."""
 
     def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int, push: str = "nearest"):
         if push not in PUSHES:
@@ -175,9 +175,11 @@ class Penetration:
         self.outlines, _ = outlines(rest, facets, n_body)
         self.push = push
         rest = np.asarray(rest, np.float64)
-        # per outline ("leading" only): its nodes' rest centroid and the signs that turn its facets' normals outward
+        # per outline ("leading" only): its nodes, their rest centroid and the signs that turn its
+        # facets' normals outward
         leading = push == "leading"
-        self._rest_centres = [rest[np.unique(o)].mean(0) if leading else None for o in self.outlines]
+        self._nodes = [np.unique(o) if leading else None for o in self.outlines]
+        self._rest_centres = [rest[n].mean(0) if leading else None for n in self._nodes]
         self._outward = [_outward_signs([rest[o[:, i]] for i in range(o.shape[1])]) if leading else None
                          for o in self.outlines]
 
@@ -188,7 +190,8 @@ class Penetration:
         from rest); 0 elsewhere."""
         out = np.zeros_like(pos, dtype=np.float64)
         points = np.flatnonzero(free)
-        for outline, centre, outward in zip(self.outlines, self._rest_centres, self._outward, strict=True):
+        for outline, nodes, centre, outward in zip(self.outlines, self._nodes, self._rest_centres, self._outward,
+                                                   strict=True):
             corners = [coming[outline[:, i]] for i in range(outline.shape[1])]
             low, high = coming[outline.ravel()].min(0), coming[outline.ravel()].max(0)
             near = points[np.all((pos[points] >= low) & (pos[points] <= high), axis=1)]  # only these can be inside
@@ -196,7 +199,7 @@ class Penetration:
             if not len(inside):
                 continue
             if self.push == "leading":
-                corners = _leading(corners, outward, coming[np.unique(outline)].mean(0) - centre, high - low)
+                corners = _leading(corners, outward, coming[nodes].mean(0) - centre, high - low)
             out[inside] += closest_on_facets(pos[inside], corners) - pos[inside]
         return out
 
