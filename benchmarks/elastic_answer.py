@@ -6,14 +6,16 @@ held where it touches the container, loaded along the penetration vectors of the
 that frame, scaled to them) -- no learning. It is the trivial answer a model with that input
 has to beat, scored as learned rollouts are (``vs at rest``: RMSE over all steps over the
 at-rest RMSE; RMSE all relative to the body size). One row per hold distance (in median rest
-edges; the first is the input's) and per ``--push`` (how the penetration input puts a node back,
-``graph.push``: ``nearest`` or ``leading``, the facets that face the indenter's travel; with
-more than one, each row names it), then ends with exactly (for the first hold and push)
+edges; the first is the input's), per ``--push`` (how the penetration input puts a node back,
+``graph.push``: ``nearest`` or ``leading``, the facets that face the indenter's travel) and per
+``--load`` (``graph.elastic_load``: ``force``, the scaled answer to forces along the pushes, or
+``contact``, the answer with every pushed node moved by its push); where more than one is given,
+each row names it. Ends with exactly (for the first hold, push and load)
 
     elastic answer: vs at rest E on N trajectories (hold H edges), P ms per frame
 
     python benchmarks/elastic_answer.py --data data/press_stiff [--split test] [--hold 1.0 0.05 0.5]
-        [--push nearest leading]
+        [--push nearest leading] [--load force contact]
 """
 
 from __future__ import annotations
@@ -32,16 +34,17 @@ from ensemble import row, score  # noqa: E402
 from bsms.config import ConfigError  # noqa: E402
 from bsms.data import Scenario  # noqa: E402
 from bsms.fields import FieldSpec  # noqa: E402
-from bsms.graph.elastic import HOLD, ElasticResponse  # noqa: E402
+from bsms.graph.elastic import HOLD, LOADS, ElasticResponse  # noqa: E402
 from bsms.graph.penetration import PUSHES  # noqa: E402
 from bsms.options import GraphOptions  # noqa: E402
 from bsms.run import split_files  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 
 
-def answers(trajectory, hold: float, push: str = "nearest") -> tuple[np.ndarray, float]:
+def answers(trajectory, hold: float, push: str = "nearest", load_: str = "force") -> tuple[np.ndarray, float]:
     """(T, N, d) the rest shape plus the elastic answer at every frame, and the seconds per frame
-    it took (penetration and solve; the factorisation, once per mesh, not counted)."""
+    it took (penetration and solve; the factorisation, once per mesh, not counted). ``load_``:
+    graph.elastic_load, ``force`` or ``contact``."""
     options = GraphOptions(levels=1, from_rest=True, penetration=True, push=push)
     scenario = Scenario.from_trajectory(trajectory, options)
     n = scenario.n_body
@@ -53,7 +56,9 @@ def answers(trajectory, hold: float, push: str = "nearest") -> tuple[np.ndarray,
     start = time.perf_counter()
     for k, obstacles in enumerate(trajectory.obstacle_positions):
         pos = scenario.positions(scenario.rest_pos[:n], obstacles)
-        out[k] = scenario.rest_pos[:n] + elastic(scenario.penetration(pos, pos, free))[:n]
+        penetration = scenario.penetration(pos, pos, free)
+        out[k] = scenario.rest_pos[:n] + (elastic(penetration) if load_ == "force" else
+                                          elastic.constrained(penetration))[:n]
     return out, (time.perf_counter() - start) / len(out)
 
 
@@ -66,6 +71,8 @@ def main(argv=None) -> int:
                         help=f"hold distances in median rest edges, the first reported last (default: {HOLD})")
     parser.add_argument("--push", nargs="+", default=["nearest"], choices=PUSHES,
                         help="how the penetration input puts a node back (graph.push; default: nearest)")
+    parser.add_argument("--load", nargs="+", default=["force"], choices=LOADS,
+                        help="how the answer loads the body (graph.elastic_load; default: force)")
     args = parser.parse_args(argv)
     try:
         files = split_files(args.data, args.split)[: args.trajectories]
@@ -75,17 +82,18 @@ def main(argv=None) -> int:
     if any(t.obstacle_positions is None for t in trajectories):
         parser.error(f"{args.data}: the elastic answer needs moving obstacles (an indenter) to load the body")
     spec = FieldSpec.lagrangian(trajectories[0].mesh.dim)
-    named = len(args.push) > 1
-    print(f"| hold (median edges){', push' if named else ''} | vs at rest (per trajectory) | RMSE all / body size |")
+    axes = [name for name, values in (("push", args.push), ("load", args.load)) if len(values) > 1]
+    print(f"| {', '.join(['hold (median edges)', *axes])} | vs at rest (per trajectory) | RMSE all / body size |")
     print("|---|---|---|")
     summary = None
-    for hold, push in itertools.product(args.hold, args.push):
+    for hold, push, load_ in itertools.product(args.hold, args.push, args.load):
         scored, seconds = [], []
         for trajectory in trajectories:
-            predicted, per_frame = answers(trajectory, hold, push)
+            predicted, per_frame = answers(trajectory, hold, push, load_)
             scored.append(score(predicted, trajectory, spec))
             seconds.append(per_frame)
-        print(row(f"{hold:g}, {push}" if named else f"{hold:g}", scored), flush=True)
+        print(row(", ".join([f"{hold:g}", *({"push": push, "load": load_}[axis] for axis in axes)]), scored),
+              flush=True)
         if summary is None:
             summary = (np.mean([m["vs_rest"] for m in scored]), hold, 1e3 * np.mean(seconds))
     vs, hold, ms = summary

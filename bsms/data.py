@@ -228,7 +228,8 @@ class Scenario:
         if not self.options.elastic or self.elastic is None:
             return [self.frame(pos, velocity) for pos, velocity in states]
         loads = [self._penetration(pos, velocity) for pos, velocity in states]
-        answers = self.elastic.many(loads)
+        answers = self.elastic.many(loads) if self.options.elastic_load == "force" else \
+            [self.elastic.constrained(load) for load in loads]
         return [self.frame(pos, velocity, inputs=(load, answer))
                 for (pos, velocity), load, answer in zip(states, loads, answers, strict=True)]
 
@@ -273,7 +274,8 @@ class Scenario:
             arrays["penetration"] = penetration[nodes]
             if self.options.elastic:
                 if answer is None:
-                    answer = self.elastic(penetration) if self.elastic is not None else np.zeros_like(penetration)
+                    answer = np.zeros_like(penetration) if self.elastic is None else self.elastic(penetration) \
+                        if self.options.elastic_load == "force" else self.elastic.constrained(penetration)
                 arrays["elastic"] = answer[nodes]
         if self.options.clearance:
             arrays["clearance"] = self.clearance(np.asarray(pos, np.float64), self.node_type == NodeType.FREE)[nodes] \

@@ -94,6 +94,13 @@ class GraphOptions:
         match them where they act (:mod:`bsms.graph.elastic`) -- how far a push moves the far end
         of a thin arm, which the network would otherwise infer from the mesh alone. Needs
         ``penetration`` (its loads) and simplex body meshes.
+    elastic_load: how ``elastic`` loads the body: ``force``, forces along the penetration
+        vectors, the response scaled to match them where they act; ``contact``, every penetrating
+        node moved along its vector by its length (free to slide across it, released where the
+        contact would pull: :meth:`~bsms.graph.elastic.ElasticResponse.constrained`), unscaled --
+        a contact's answer, which takes the push where a force concentrates it under the loaded
+        nodes (on the press family the forced answer is 0.8-11 times too small in the far field,
+        the contact's 0.2-1.3: docs/press.md). Costs a solve per penetrating node.
     elastic_residual: with ``elastic`` and ``from_rest``, the network learns the correction to that
         answer: its target is the displacement less the answer (over the frame interval), and the
         answer is added back to its output. Where the answer is right, the network's part is 0.
@@ -118,6 +125,7 @@ class GraphOptions:
     clearance: bool = False
     drive: bool = False
     elastic: bool = False
+    elastic_load: Literal["force", "contact"] = "force"
     elastic_residual: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
@@ -134,6 +142,9 @@ class GraphOptions:
         if self.elastic and not self.penetration:
             raise ConfigError(f"config key '{prefix}.elastic' loads the body where the obstacles reach into it; set "
                               f"'{prefix}.penetration: true' too, or '{prefix}.elastic: false'")
+        if self.elastic_load != "force" and not self.elastic:
+            raise ConfigError(f"config key '{prefix}.elastic_load' says how the elastic input loads the body; set "
+                              f"'{prefix}.elastic: true' too, or leave '{prefix}.elastic_load' out")
         if self.push != "nearest" and not self.penetration:
             raise ConfigError(f"config key '{prefix}.push' says how the penetration input puts a node back; set "
                               f"'{prefix}.penetration: true' too, or leave '{prefix}.push' out")

@@ -31,12 +31,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import sparse
+from scipy import linalg, sparse
+from scipy.optimize import nnls
 from scipy.sparse.linalg import splu
 
 from bsms.graph.penetration import closest_on_facets, outlines
 
-__all__ = ["HOLD", "REGULARISATION", "stiffness", "nodal_measures", "held_nodes", "ElasticResponse"]
+__all__ = ["HOLD", "REGULARISATION", "CONTACT_ITERATIONS", "LOADS", "stiffness", "nodal_measures", "held_nodes",
+           "ElasticResponse"]
 
 # nodes within this many median rest edges of the container are held: the row on a bonded floor
 # and the nodes just above it, which a solver's sticky grid holds too (on press_stiff's test split
@@ -45,6 +47,10 @@ __all__ = ["HOLD", "REGULARISATION", "stiffness", "nodal_measures", "held_nodes"
 HOLD = 1.0
 # K + REGULARISATION * mean(diag K) * I: solvable when nothing holds the body, negligible otherwise
 REGULARISATION = 1e-9
+# how graph.elastic loads the body (graph.elastic_load): ElasticResponse.__call__ and .constrained
+LOADS = ("force", "contact")
+# ElasticResponse.constrained gives up after this many iterations per pushed node of its non-negative least squares
+CONTACT_ITERATIONS = 10
 
 
 def _gradients(rest: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -164,4 +170,47 @@ class ElasticResponse:
             fit = float((u[loaded] ** 2).sum())
             if fit > 0:
                 out[k][: self.n_body] = u * (float((u[loaded] * p[loaded]).sum()) / fit)
+        return out
+
+    def constrained(self, penetration: np.ndarray) -> np.ndarray:
+        """(N, d): the body's answer to ``penetration`` (N, d) as a contact makes it, unscaled: each
+        loaded free node is moved along its push by at least the push's length and may slide across
+        it, the rest of the body follows elastically; 0 on the other nodes.
+
+        The displacement of least elastic energy with ``n_i . u_i = |p_i|`` on the loaded nodes
+        (Lagrange multipliers: ``K u = C^T lam``), where a node the contact would pull (a negative
+        multiplier) is released instead: the conditions of frictionless contact with the
+        obstacle's surface where the push puts it (every pushed node on it or clear of it, every
+        multiplier a push, none where a node is clear), solved exactly as non-negative least
+        squares of the multipliers. Unlike :meth:`__call__` the answer is not scaled to the pushes --
+        the loaded nodes meet them. Costs a solve per loaded node (of one factorisation, with many
+        right-hand sides) and dense algebra of their count."""
+        out = np.zeros(np.shape(penetration), np.float64)
+        push = np.asarray(penetration, np.float64)[: self.n_body]
+        depth = np.linalg.norm(push, axis=1)
+        dofs = -np.ones(self.dim * self.n_body, np.int64)
+        dofs[self.free_dofs] = np.arange(len(self.free_dofs))
+        loaded = np.flatnonzero(depth > 0)
+        loaded = loaded[np.all(dofs[self.dim * loaded[:, None] + np.arange(self.dim)] >= 0, axis=1)]
+        if not len(loaded):
+            return out
+        normals = push[loaded] / depth[loaded, None]
+        constraint = np.zeros((len(self.free_dofs), len(loaded)))  # C^T: a column per pushed node
+        constraint[dofs[self.dim * loaded[:, None] + np.arange(self.dim)], np.arange(len(loaded))[:, None]] = normals
+        response = self._solver().solve(constraint)  # K^-1 C^T: what a unit push of each node does
+        coupling = constraint.T @ response  # S = C K^-1 C^T: how far each push carries each node along its own
+        # the pushes lam >= 0 that minimise 1/2 lam S lam - depth . lam (the dual of the contact
+        # problem), as non-negative least squares in S's Cholesky factor: every held node meets
+        # its push (S lam = depth where lam > 0), every released one clears it (S lam >= depth)
+        factor = linalg.cholesky(0.5 * (coupling + coupling.T), lower=True)
+        iterations = max(1, round(CONTACT_ITERATIONS * len(loaded)))
+        try:
+            multipliers, _ = nnls(factor.T, linalg.solve_triangular(factor, depth[loaded], lower=True),
+                                  maxiter=iterations)
+        except RuntimeError:
+            raise RuntimeError(f"graph.elastic: the contact answer did not settle which of {len(loaded)} pushed "
+                               f"nodes push in {iterations} iterations") from None
+        u = np.zeros(self.dim * self.n_body)
+        u[self.free_dofs] = response @ multipliers
+        out[: self.n_body] = u.reshape(self.n_body, self.dim)
         return out
