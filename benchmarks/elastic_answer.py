@@ -10,12 +10,14 @@ edges; the first is the input's), per ``--push`` (how the penetration input puts
 ``graph.push``: ``nearest`` or ``leading``, the facets that face the indenter's travel) and per
 ``--load`` (``graph.elastic_load``: ``force``, the scaled answer to forces along the pushes, or
 ``contact``, the answer with every pushed node moved by its push); where more than one is given,
-each row names it. Ends with exactly (for the first hold, push and load)
+each row names it. ``--scale`` adds a table of the factor that best scales each trajectory's
+answer to its data (1: the answer's size is right). Ends with exactly (for the first hold, push
+and load)
 
     elastic answer: vs at rest E on N trajectories (hold H edges), P ms per frame
 
     python benchmarks/elastic_answer.py --data data/press_stiff [--split test] [--hold 1.0 0.05 0.5]
-        [--push nearest leading] [--load force contact]
+        [--push nearest leading] [--load force contact] [--scale]
 """
 
 from __future__ import annotations
@@ -33,11 +35,12 @@ from ensemble import row, score  # noqa: E402
 
 from bsms.config import ConfigError  # noqa: E402
 from bsms.data import Scenario  # noqa: E402
-from bsms.fields import FieldSpec  # noqa: E402
+from bsms.fields import FieldSpec, world_positions  # noqa: E402
 from bsms.graph.elastic import HOLD, LOADS, ElasticResponse  # noqa: E402
 from bsms.graph.penetration import PUSHES  # noqa: E402
 from bsms.options import GraphOptions  # noqa: E402
 from bsms.run import split_files  # noqa: E402
+from bsms.solver_runs import free_nodes  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 
 
@@ -62,6 +65,18 @@ def answers(trajectory, hold: float, push: str = "nearest", load_: str = "force"
     return out, (time.perf_counter() - start) / len(out)
 
 
+def best_scale(predicted: np.ndarray, trajectory, spec) -> float:
+    """The factor s that brings the answer's displacements u (``predicted`` less the rest mesh)
+    closest to the data's d from its first frame (least squares over the free nodes of every
+    frame): s = sum d.u / sum u.u; 1 where the answer's size is right, above 1 where the body
+    moves further than the answer says (nan if it never moves)."""
+    truth = world_positions(spec, trajectory)[: len(predicted)]
+    free = free_nodes(trajectory)
+    d, u = (truth - truth[:1])[:, free], (predicted - trajectory.mesh.nodes)[:, free]
+    norm = float((u * u).sum())
+    return float((d * u).sum()) / norm if norm > 0 else float("nan")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", required=True, type=Path, help="a dataset folder of a driven family (press, bracket)")
@@ -73,6 +88,8 @@ def main(argv=None) -> int:
                         help="how the penetration input puts a node back (graph.push; default: nearest)")
     parser.add_argument("--load", nargs="+", default=["force"], choices=LOADS,
                         help="how the answer loads the body (graph.elastic_load; default: force)")
+    parser.add_argument("--scale", action="store_true",
+                        help="also print, per row, the factor that best scales the answer to the data per trajectory")
     args = parser.parse_args(argv)
     try:
         files = split_files(args.data, args.split)[: args.trajectories]
@@ -85,17 +102,23 @@ def main(argv=None) -> int:
     axes = [name for name, values in (("push", args.push), ("load", args.load)) if len(values) > 1]
     print(f"| {', '.join(['hold (median edges)', *axes])} | vs at rest (per trajectory) | RMSE all / body size |")
     print("|---|---|---|")
-    summary = None
+    summary, scales = None, []
     for hold, push, load_ in itertools.product(args.hold, args.push, args.load):
-        scored, seconds = [], []
+        scored, seconds, factors = [], [], []
         for trajectory in trajectories:
             predicted, per_frame = answers(trajectory, hold, push, load_)
             scored.append(score(predicted, trajectory, spec))
             seconds.append(per_frame)
-        print(row(", ".join([f"{hold:g}", *({"push": push, "load": load_}[axis] for axis in axes)]), scored),
-              flush=True)
+            factors.append(best_scale(predicted, trajectory, spec))
+        label = ", ".join([f"{hold:g}", *({"push": push, "load": load_}[axis] for axis in axes)])
+        print(row(label, scored), flush=True)
+        scales.append(f"| {label} | {np.median(factors):.3g} ({', '.join(f'{f:.2f}' for f in factors)}) |")
         if summary is None:
             summary = (np.mean([m["vs_rest"] for m in scored]), hold, 1e3 * np.mean(seconds))
+    if args.scale:
+        print(f"\n| {', '.join(['hold (median edges)', *axes])} | data / answer, median (per trajectory) |")
+        print("|---|---|")
+        print("\n".join(scales))
     vs, hold, ms = summary
     print(f"elastic answer: vs at rest {vs:.3g} on {len(trajectories)} trajectories (hold {hold:g} edges), "
           f"{ms:.3g} ms per frame")

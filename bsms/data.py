@@ -337,6 +337,8 @@ class FrameDataset(NumberedSamples):
                 raise ValueError(f"{source} has {len(trajectory.times)} frame(s); training needs >= 2")
             spec = self._spec(trajectory, source)
             scenario = Scenario.from_trajectory(trajectory, options, cache_dir, source=source, spec=spec)
+            if scenario.elastic is not None:
+                scenario.elastic.cache_limit = 0  # samples are drawn across all scenes: keep no unit responses
             self.scenarios.append(scenario)
             if not spec.is_lagrangian:
                 self.states.append(eulerian_state(spec, trajectory, source))

@@ -126,3 +126,19 @@ def test_graph_elastic_load_contact_is_the_contact_answer_in_every_frame():
     with pytest.raises(ConfigError, match=r"^config key 'graph.elastic_load' says how the elastic input loads the "
                                           r"body; set 'graph.elastic: true' too, or leave 'graph.elastic_load' out$"):
         GraphOptions(penetration=True, elastic_load="contact").validate()
+
+
+def test_a_rollout_solves_for_each_pushed_node_once_and_training_keeps_nothing():
+    scenario, rest, facets, n_body, punch = _scenario(penetration=True, elastic=True, elastic_load="contact")
+    elastic = scenario.elastic
+    solves = []
+    factor = elastic._solver()
+    elastic._factor = type("Counted", (), {"solve": lambda self, b: solves.append(b.shape[1]) or factor.solve(b)})()
+    frames = [scenario.frame(*_pressed(scenario, punch, depth)) for depth in (0.1, 0.15, 0.2, 0.2, 0.15)]
+    # the first two depths reach 4 new nodes each (two unit forces per node in 2D), the rest none
+    assert solves == [8, 8] and len(elastic._columns) == 8
+    elastic._factor, elastic.cache_limit, elastic._columns = factor, 0, {}
+    for depth, cached in zip((0.1, 0.15, 0.2, 0.2, 0.15), frames, strict=True):
+        alone = scenario.frame(*_pressed(scenario, punch, depth)).nodes["elastic"]
+        np.testing.assert_allclose(alone, cached.nodes["elastic"], rtol=0, atol=1e-15)
+    assert not elastic._columns

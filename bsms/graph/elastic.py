@@ -37,8 +37,8 @@ from scipy.sparse.linalg import splu
 
 from bsms.graph.penetration import closest_on_facets, outlines
 
-__all__ = ["HOLD", "REGULARISATION", "CONTACT_ITERATIONS", "LOADS", "stiffness", "nodal_measures", "held_nodes",
-           "ElasticResponse"]
+__all__ = ["HOLD", "REGULARISATION", "CONTACT_ITERATIONS", "CACHED_NODES", "LOADS", "stiffness", "nodal_measures",
+           "held_nodes", "ElasticResponse"]
 
 # nodes within this many median rest edges of the container are held: the row on a bonded floor
 # and the nodes just above it, which a solver's sticky grid holds too (on press_stiff's test split
@@ -49,6 +49,9 @@ HOLD = 1.0
 REGULARISATION = 1e-9
 # how graph.elastic loads the body (graph.elastic_load): ElasticResponse.__call__ and .constrained
 LOADS = ("force", "contact")
+# nodes whose unit responses an ElasticResponse keeps for constrained (dofs x dim floats each; training's
+# datasets, which draw frames of many scenes, keep none)
+CACHED_NODES = 1024
 # ElasticResponse.constrained gives up after this many iterations per pushed node of its non-negative least squares
 CONTACT_ITERATIONS = 10
 
@@ -133,9 +136,34 @@ class ElasticResponse:
         self.free_dofs = np.flatnonzero(keep)
         self._factor = None
         self._solver()  # with the hierarchy, once per mesh: a frame only solves
+        self._columns: dict[int, np.ndarray] = {}
+        self.cache_limit = CACHED_NODES
 
     def __getstate__(self):  # a factorisation does not pickle: each process makes its own
-        return {**self.__dict__, "_factor": None}
+        return {**self.__dict__, "_factor": None, "_columns": {}}
+
+    def _responses(self, nodes: np.ndarray, normals: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(F, m) K^-1 at the free dofs for a unit push of each of ``nodes`` along its normal
+        (``rows``: (m, d) each node's free dofs). With a ``cache_limit``, built from the responses
+        to unit forces along each axis, kept for up to that many nodes, so that a rollout, whose
+        indenter reaches much the same nodes frame after frame, solves for each node once."""
+        if not self.cache_limit:
+            rhs = np.zeros((len(self.free_dofs), len(nodes)))
+            rhs[rows, np.arange(len(nodes))[:, None]] = normals
+            return self._solver().solve(rhs)
+        missing = [j for j, node in enumerate(nodes) if int(node) not in self._columns]
+        if missing:
+            rhs = np.zeros((len(self.free_dofs), len(missing) * self.dim))
+            rhs[rows[missing].ravel(), np.arange(len(missing) * self.dim)] = 1.0
+            columns = self._solver().solve(rhs).reshape(len(self.free_dofs), len(missing), self.dim)
+            solved = {int(nodes[j]): columns[:, k] for k, j in enumerate(missing)}
+            for node, column in solved.items():
+                if len(self._columns) < self.cache_limit:
+                    self._columns[node] = column
+        else:
+            solved = {}
+        units = np.stack([self._columns[int(n)] if int(n) in self._columns else solved[int(n)] for n in nodes], axis=1)
+        return np.einsum("fmd,md->fm", units, normals)
 
     def _solver(self):
         if self._factor is None:
@@ -183,8 +211,8 @@ class ElasticResponse:
         obstacle's surface where the push puts it (every pushed node on it or clear of it, every
         multiplier a push, none where a node is clear), solved exactly as non-negative least
         squares of the multipliers. Unlike :meth:`__call__` the answer is not scaled to the pushes --
-        the loaded nodes meet them. Costs a solve per loaded node (of one factorisation, with many
-        right-hand sides) and dense algebra of their count."""
+        the loaded nodes meet them. Costs d solves per loaded node not seen before (of one
+        factorisation, with many right-hand sides) and dense algebra of the loaded nodes' count."""
         out = np.zeros(np.shape(penetration), np.float64)
         push = np.asarray(penetration, np.float64)[: self.n_body]
         depth = np.linalg.norm(push, axis=1)
@@ -195,10 +223,10 @@ class ElasticResponse:
         if not len(loaded):
             return out
         normals = push[loaded] / depth[loaded, None]
-        constraint = np.zeros((len(self.free_dofs), len(loaded)))  # C^T: a column per pushed node
-        constraint[dofs[self.dim * loaded[:, None] + np.arange(self.dim)], np.arange(len(loaded))[:, None]] = normals
-        response = self._solver().solve(constraint)  # K^-1 C^T: what a unit push of each node does
-        coupling = constraint.T @ response  # S = C K^-1 C^T: how far each push carries each node along its own
+        rows = dofs[self.dim * loaded[:, None] + np.arange(self.dim)]  # (m, d)
+        response = self._responses(loaded, normals, rows)  # K^-1 C^T
+        # S = C K^-1 C^T: how far the push of node j carries node i along node i's own
+        coupling = np.einsum("idj,id->ij", response[rows], normals)
         # the pushes lam >= 0 that minimise 1/2 lam S lam - depth . lam (the dual of the contact
         # problem), as non-negative least squares in S's Cholesky factor: every held node meets
         # its push (S lam = depth where lam > 0), every released one clears it (S lam >= depth)
