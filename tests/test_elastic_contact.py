@@ -136,9 +136,15 @@ def test_a_rollout_solves_for_each_pushed_node_once_and_training_keeps_nothing()
     elastic._factor = type("Counted", (), {"solve": lambda self, b: solves.append(b.shape[1]) or factor.solve(b)})()
     frames = [scenario.frame(*_pressed(scenario, punch, depth)) for depth in (0.1, 0.15, 0.2, 0.2, 0.15)]
     # the first two depths reach 4 new nodes each (two unit forces per node in 2D), the rest none
-    assert solves == [8, 8] and len(elastic._columns) == 8
-    elastic._factor, elastic.cache_limit, elastic._columns = factor, 0, {}
+    assert solves == [8, 8] and elastic._count == 8
+    elastic._factor, elastic.cache_limit = factor, 0
+    elastic._forget()
     for depth, cached in zip((0.1, 0.15, 0.2, 0.2, 0.15), frames, strict=True):
         alone = scenario.frame(*_pressed(scenario, punch, depth)).nodes["elastic"]
         np.testing.assert_allclose(alone, cached.nodes["elastic"], rtol=0, atol=1e-15)
-    assert not elastic._columns
+    assert elastic._count == 0
+    elastic.cache_limit = 6  # room for the first depth's 4 nodes, not for the next 4: solved alone, not kept
+    for depth, cached in zip((0.1, 0.15), frames, strict=False):
+        alone = scenario.frame(*_pressed(scenario, punch, depth)).nodes["elastic"]
+        np.testing.assert_allclose(alone, cached.nodes["elastic"], rtol=0, atol=1e-15)
+    assert elastic._count == 4

@@ -109,6 +109,25 @@ def held_nodes(rest: np.ndarray, facets: np.ndarray, n_body: int, tolerance: flo
     return np.flatnonzero(distance <= tolerance)
 
 
+def _contact_multipliers(coupling: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """(m,) the pushes lam >= 0 minimising 1/2 lam S lam - depth . lam for ``coupling`` S (m, m),
+    symmetric positive definite: the dual of frictionless contact. Every node it pushes meets its
+    depth (S lam = depth where lam > 0), every other clears it (S lam >= depth). Where all m push,
+    one Cholesky solve; otherwise non-negative least squares in S's Cholesky factor."""
+    factor = linalg.cho_factor(coupling, lower=True)
+    multipliers = linalg.cho_solve(factor, depth)
+    if np.all(multipliers >= 0):
+        return multipliers
+    lower = np.tril(factor[0])
+    iterations = max(1, round(CONTACT_ITERATIONS * len(depth)))
+    try:
+        multipliers, _ = nnls(lower.T, linalg.solve_triangular(lower, depth, lower=True), maxiter=iterations)
+    except RuntimeError:
+        raise RuntimeError(f"graph.elastic: the contact answer did not settle which of {len(depth)} pushed nodes "
+                           f"push in {iterations} iterations") from None
+    return multipliers
+
+
 class ElasticResponse:
     """The elastic input of one scenario.
 
@@ -136,34 +155,39 @@ class ElasticResponse:
         self.free_dofs = np.flatnonzero(keep)
         self._factor = None
         self._solver()  # with the hierarchy, once per mesh: a frame only solves
-        self._columns: dict[int, np.ndarray] = {}
         self.cache_limit = CACHED_NODES
+        self._forget()
+
+    def _forget(self) -> None:
+        """Drop the unit responses kept for :meth:`constrained`."""
+        self._bank, self._count = np.zeros((len(self.free_dofs), 0, self.dim)), 0
+        self._slot = np.full(self.n_body, -1, np.int64)
 
     def __getstate__(self):  # a factorisation does not pickle: each process makes its own
-        return {**self.__dict__, "_factor": None, "_columns": {}}
+        return {**self.__dict__, "_factor": None, "_bank": np.zeros((len(self.free_dofs), 0, self.dim)),
+                "_count": 0, "_slot": np.full(self.n_body, -1, np.int64)}
 
-    def _responses(self, nodes: np.ndarray, normals: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """(F, m) K^-1 at the free dofs for a unit push of each of ``nodes`` along its normal
-        (``rows``: (m, d) each node's free dofs). With a ``cache_limit``, built from the responses
-        to unit forces along each axis, kept for up to that many nodes, so that a rollout, whose
-        indenter reaches much the same nodes frame after frame, solves for each node once."""
-        if not self.cache_limit:
-            rhs = np.zeros((len(self.free_dofs), len(nodes)))
-            rhs[rows, np.arange(len(nodes))[:, None]] = normals
-            return self._solver().solve(rhs)
-        missing = [j for j, node in enumerate(nodes) if int(node) not in self._columns]
-        if missing:
+    def _unit_bank(self, nodes: np.ndarray, rows: np.ndarray) -> np.ndarray | None:
+        """The slots of ``nodes`` in ``self._bank`` (F, slots, d): K^-1 at the free dofs for a unit
+        force on a node along each axis, solved for once per node (``rows``: (m, d) the nodes'
+        free dofs) -- a rollout's indenter reaches much the same nodes frame after frame. None
+        when they would not fit ``cache_limit`` nodes."""
+        missing = np.flatnonzero(self._slot[nodes] < 0)
+        count = self._count + len(missing)
+        if count > self.cache_limit:
+            return None
+        if count > self._bank.shape[1]:
+            grown = np.zeros((len(self.free_dofs), min(max(2 * self._bank.shape[1], count, 64), self.cache_limit),
+                              self.dim))
+            grown[:, : self._count] = self._bank[:, : self._count]
+            self._bank = grown
+        if len(missing):
             rhs = np.zeros((len(self.free_dofs), len(missing) * self.dim))
             rhs[rows[missing].ravel(), np.arange(len(missing) * self.dim)] = 1.0
-            columns = self._solver().solve(rhs).reshape(len(self.free_dofs), len(missing), self.dim)
-            solved = {int(nodes[j]): columns[:, k] for k, j in enumerate(missing)}
-            for node, column in solved.items():
-                if len(self._columns) < self.cache_limit:
-                    self._columns[node] = column
-        else:
-            solved = {}
-        units = np.stack([self._columns[int(n)] if int(n) in self._columns else solved[int(n)] for n in nodes], axis=1)
-        return np.einsum("fmd,md->fm", units, normals)
+            self._bank[:, self._count:count] = self._solver().solve(rhs).reshape(-1, len(missing), self.dim)
+            self._slot[nodes[missing]] = np.arange(self._count, count)
+            self._count = count
+        return self._slot[nodes]
 
     def _solver(self):
         if self._factor is None:
@@ -224,21 +248,23 @@ class ElasticResponse:
             return out
         normals = push[loaded] / depth[loaded, None]
         rows = dofs[self.dim * loaded[:, None] + np.arange(self.dim)]  # (m, d)
-        response = self._responses(loaded, normals, rows)  # K^-1 C^T
+        slots = self._unit_bank(loaded, rows) if self.cache_limit else None
+        if slots is None:  # K^-1 C^T: what a unit push of each node along its normal does
+            rhs = np.zeros((len(self.free_dofs), len(loaded)))
+            rhs[rows, np.arange(len(loaded))[:, None]] = normals
+            response = self._solver().solve(rhs)
+            near = response[rows]  # (m, d, m)
+        else:
+            near = np.einsum("idjb,jb->idj", self._bank[rows][:, :, slots], normals)
         # S = C K^-1 C^T: how far the push of node j carries node i along node i's own
-        coupling = np.einsum("idj,id->ij", response[rows], normals)
-        # the pushes lam >= 0 that minimise 1/2 lam S lam - depth . lam (the dual of the contact
-        # problem), as non-negative least squares in S's Cholesky factor: every held node meets
-        # its push (S lam = depth where lam > 0), every released one clears it (S lam >= depth)
-        factor = linalg.cholesky(0.5 * (coupling + coupling.T), lower=True)
-        iterations = max(1, round(CONTACT_ITERATIONS * len(loaded)))
-        try:
-            multipliers, _ = nnls(factor.T, linalg.solve_triangular(factor, depth[loaded], lower=True),
-                                  maxiter=iterations)
-        except RuntimeError:
-            raise RuntimeError(f"graph.elastic: the contact answer did not settle which of {len(loaded)} pushed "
-                               f"nodes push in {iterations} iterations") from None
+        coupling = np.einsum("idj,id->ij", near, normals)
+        multipliers = _contact_multipliers(0.5 * (coupling + coupling.T), depth[loaded])
         u = np.zeros(self.dim * self.n_body)
-        u[self.free_dofs] = response @ multipliers
+        if slots is None:
+            u[self.free_dofs] = response @ multipliers
+        else:
+            weights = np.zeros((self._bank.shape[1], self.dim))
+            weights[slots] = multipliers[:, None] * normals
+            u[self.free_dofs] = self._bank.reshape(len(self.free_dofs), -1) @ weights.ravel()
         out[: self.n_body] = u.reshape(self.n_body, self.dim)
         return out
