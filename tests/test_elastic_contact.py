@@ -1,8 +1,9 @@
-"""ElasticResponse.constrained: the body's answer as a frictionless contact makes it (the
-reference benchmarks/elastic_scale.py weighs graph.elastic's scaled answer against)."""
+"""ElasticResponse.constrained: the body's answer as a frictionless contact makes it
+(graph.elastic_load: contact)."""
 
 import numpy as np
 import pytest
+from scipy.optimize import nnls
 from test_elastic import _on_the_floor, _scenario, kuhn_tetrahedra
 
 from bsms.config import ConfigError
@@ -73,10 +74,29 @@ def test_the_answer_needs_no_push_and_gives_up_by_name(monkeypatch):
     elastic = ElasticResponse(rest, facets, n_body, body.cells, 0.3, 0.1)
     assert not elastic.constrained(np.zeros_like(rest)).any()
     push, _ = _top_push(rest, n_body, lambda x: 0.02 * (1.0 - x) ** 3 + 1e-4)
+    monkeypatch.setattr(elastic_module, "ACTIVE_SET_TRIES", 1)
     monkeypatch.setattr(elastic_module, "CONTACT_ITERATIONS", 0.01)
     with pytest.raises(RuntimeError, match=r"^graph.elastic: the contact answer did not settle which of 11 pushed "
                                            r"nodes push in 1 iterations$"):
         elastic.constrained(push)
+
+
+def test_guessed_active_sets_give_the_least_squares_answer_and_the_next_frame_starts_from_it(monkeypatch):
+    body, rest, facets, n_body, _ = _on_the_floor()
+    push, _ = _top_push(rest, n_body, lambda x: 0.02 * (1.0 - x) ** 3 + 1e-4)
+    monkeypatch.setattr(elastic_module, "ACTIVE_SET_TRIES", 0)  # straight to non-negative least squares
+    exact = ElasticResponse(rest, facets, n_body, body.cells, 0.3, 0.1).constrained(push)
+    monkeypatch.undo()
+    calls = []
+    monkeypatch.setattr(elastic_module, "nnls", lambda *a, **k: calls.append(1) or nnls(*a, **k))
+    elastic = ElasticResponse(rest, facets, n_body, body.cells, 0.3, 0.1)
+    first = elastic.constrained(push)
+    np.testing.assert_allclose(first, exact, rtol=0, atol=1e-14)
+    released = elastic._released.copy()
+    assert released.sum() >= 3
+    np.testing.assert_array_equal(elastic.constrained(push), first)  # the last frame's guess is right at once
+    np.testing.assert_array_equal(elastic._released, released)
+    assert not calls, "the active-set guesses settled it"
 
 
 def test_a_3d_body_pressed_meets_its_push_and_is_in_balance_elsewhere():

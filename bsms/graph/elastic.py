@@ -52,6 +52,8 @@ LOADS = ("force", "contact")
 # nodes whose unit responses an ElasticResponse keeps for constrained (dofs x dim floats each; training's
 # datasets, which draw frames of many scenes, keep none)
 CACHED_NODES = 1024
+# active-set guesses ElasticResponse.constrained corrects before it solves as non-negative least squares
+ACTIVE_SET_TRIES = 4
 # ElasticResponse.constrained gives up after this many iterations per pushed node of its non-negative least squares
 CONTACT_ITERATIONS = 10
 
@@ -109,16 +111,28 @@ def held_nodes(rest: np.ndarray, facets: np.ndarray, n_body: int, tolerance: flo
     return np.flatnonzero(distance <= tolerance)
 
 
-def _contact_multipliers(coupling: np.ndarray, depth: np.ndarray) -> np.ndarray:
+def _contact_multipliers(coupling: np.ndarray, depth: np.ndarray, released: np.ndarray) -> np.ndarray:
     """(m,) the pushes lam >= 0 minimising 1/2 lam S lam - depth . lam for ``coupling`` S (m, m),
-    symmetric positive definite: the dual of frictionless contact. Every node it pushes meets its
-    depth (S lam = depth where lam > 0), every other clears it (S lam >= depth). Where all m push,
-    one Cholesky solve; otherwise non-negative least squares in S's Cholesky factor."""
-    factor = linalg.cho_factor(coupling, lower=True)
-    multipliers = linalg.cho_solve(factor, depth)
-    if np.all(multipliers >= 0):
-        return multipliers
-    lower = np.tril(factor[0])
+    symmetric positive definite: the dual of frictionless contact, whose answer is unique. Every
+    node it pushes meets its depth (S lam = depth where lam > 0), every other clears it (S lam >=
+    depth). Guessed from ``released`` (m,), the nodes thought clear (a rollout's last frame), and
+    corrected a few times by the primal-dual active set rule; if that does not settle it,
+    non-negative least squares in S's Cholesky factor."""
+    active, scale = ~released, float(np.mean(np.diag(coupling)))
+    for _ in range(ACTIVE_SET_TRIES):
+        chosen = np.flatnonzero(active)
+        multipliers = np.zeros(len(depth))
+        if len(chosen):
+            multipliers[chosen] = linalg.cho_solve(linalg.cho_factor(coupling[np.ix_(chosen, chosen)], lower=True),
+                                                   depth[chosen])
+        reach = coupling[:, chosen] @ multipliers[chosen]
+        if np.all(multipliers >= 0) and np.all(reach[~active] >= depth[~active] * (1 - 1e-9)):
+            return multipliers
+        guess = multipliers + (depth - reach) / scale > 0  # pushed where it pulls not, held where it sinks
+        if np.array_equal(guess, active):
+            break
+        active = guess
+    lower = linalg.cholesky(coupling, lower=True)
     iterations = max(1, round(CONTACT_ITERATIONS * len(depth)))
     try:
         multipliers, _ = nnls(lower.T, linalg.solve_triangular(lower, depth, lower=True), maxiter=iterations)
@@ -162,10 +176,11 @@ class ElasticResponse:
         """Drop the unit responses kept for :meth:`constrained`."""
         self._bank, self._count = np.zeros((len(self.free_dofs), 0, self.dim)), 0
         self._slot = np.full(self.n_body, -1, np.int64)
+        self._released = np.zeros(self.n_body, bool)  # the last answer's released nodes: the next one's guess
 
     def __getstate__(self):  # a factorisation does not pickle: each process makes its own
         return {**self.__dict__, "_factor": None, "_bank": np.zeros((len(self.free_dofs), 0, self.dim)),
-                "_count": 0, "_slot": np.full(self.n_body, -1, np.int64)}
+                "_count": 0, "_slot": np.full(self.n_body, -1, np.int64), "_released": np.zeros(self.n_body, bool)}
 
     def _unit_bank(self, nodes: np.ndarray, rows: np.ndarray) -> np.ndarray | None:
         """The slots of ``nodes`` in ``self._bank`` (F, slots, d): K^-1 at the free dofs for a unit
@@ -258,7 +273,8 @@ class ElasticResponse:
             near = np.einsum("idjb,jb->idj", self._bank[rows][:, :, slots], normals)
         # S = C K^-1 C^T: how far the push of node j carries node i along node i's own
         coupling = np.einsum("idj,id->ij", near, normals)
-        multipliers = _contact_multipliers(0.5 * (coupling + coupling.T), depth[loaded])
+        multipliers = _contact_multipliers(0.5 * (coupling + coupling.T), depth[loaded], self._released[loaded])
+        self._released[loaded] = multipliers <= 0
         u = np.zeros(self.dim * self.n_body)
         if slots is None:
             u[self.free_dofs] = response @ multipliers
