@@ -229,7 +229,7 @@ class Scenario:
             return [self.frame(pos, velocity) for pos, velocity in states]
         loads = [self._penetration(pos, velocity) for pos, velocity in states]
         answers = self.elastic.many(loads) if self.options.elastic_load == "force" else \
-            [self.elastic.constrained(load) for load in loads]
+            self.elastic.constrained_many(loads)
         return [self.frame(pos, velocity, inputs=(load, answer))
                 for (pos, velocity), load, answer in zip(states, loads, answers, strict=True)]
 

@@ -239,6 +239,26 @@ class ElasticResponse:
                 out[k][: self.n_body] = u * (float((u[loaded] * p[loaded]).sum()) / fit)
         return out
 
+    def constrained_many(self, penetrations: list[np.ndarray]) -> list[np.ndarray]:
+        """:meth:`constrained` of each of ``penetrations`` (a rollout's frames), the unit
+        responses of every node any of them pushes solved for together first (one solve of many
+        right-hand sides), where they fit the cache."""
+        pushed = np.zeros(self.n_body, bool)
+        for p in penetrations:
+            pushed |= np.any(np.asarray(p)[: self.n_body] != 0, axis=1)
+        dofs = self._free_index()
+        nodes = np.flatnonzero(pushed)
+        nodes = nodes[np.all(dofs[self.dim * nodes[:, None] + np.arange(self.dim)] >= 0, axis=1)]
+        if self.cache_limit and len(nodes):
+            self._unit_bank(nodes, dofs[self.dim * nodes[:, None] + np.arange(self.dim)])
+        return [self.constrained(p) for p in penetrations]
+
+    def _free_index(self) -> np.ndarray:
+        """(d N_body,) each body dof's index among the free dofs, -1 where held."""
+        dofs = -np.ones(self.dim * self.n_body, np.int64)
+        dofs[self.free_dofs] = np.arange(len(self.free_dofs))
+        return dofs
+
     def constrained(self, penetration: np.ndarray) -> np.ndarray:
         """(N, d): the body's answer to ``penetration`` (N, d) as a contact makes it, unscaled: each
         loaded free node is moved along its push by at least the push's length and may slide across
@@ -255,8 +275,7 @@ class ElasticResponse:
         out = np.zeros(np.shape(penetration), np.float64)
         push = np.asarray(penetration, np.float64)[: self.n_body]
         depth = np.linalg.norm(push, axis=1)
-        dofs = -np.ones(self.dim * self.n_body, np.int64)
-        dofs[self.free_dofs] = np.arange(len(self.free_dofs))
+        dofs = self._free_index()
         loaded = np.flatnonzero(depth > 0)
         loaded = loaded[np.all(dofs[self.dim * loaded[:, None] + np.arange(self.dim)] >= 0, axis=1)]
         if not len(loaded):
