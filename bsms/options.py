@@ -98,9 +98,10 @@ class GraphOptions:
         vectors, the response scaled to match them where they act; ``contact``, every penetrating
         node moved along its vector by its length (free to slide across it, released where the
         contact would pull: :meth:`~bsms.graph.elastic.ElasticResponse.constrained`), unscaled --
-        a contact's answer, which takes the push where a force concentrates it under the loaded
-        nodes (on the press family the forced answer is 0.8-11 times too small in the far field,
-        the contact's 0.2-1.3: docs/press.md). Costs a solve per penetrating node.
+        a contact's answer, which carries the push into the body where a force concentrates it
+        under the loaded nodes (on the press family's training bodies the data move 0.85-11 times
+        as far as the forced answer, 0.23-1.28 times as far as the contact's: docs/press.md). Costs
+        a solve per penetrating node.
     elastic_residual: with ``elastic`` and ``from_rest``, the network learns the correction to that
         answer: its target is the displacement less the answer (over the frame interval), and the
         answer is added back to its output. Where the answer is right, the network's part is 0.
