@@ -19,7 +19,12 @@ tetrahedra in 3D), E = 1 and the scene's Poisson ratio:
 Prescribing every penetrating node onto the obstacle's surface instead (a bilateral
 displacement condition) over-constrains the body -- a solver's contact lets it sink in by part
 of a cell and slide -- and matched the press family's test split worse in a first comparison
-(docs/press.md, "The body's first-order answer"). A tiny multiple of the
+(docs/press.md, "The body's first-order answer"). A force, though, concentrates its strain under
+the nodes it acts on, so the scaled answer gives the far field too little (the press family's
+training bodies move 2.3 times as far at the median, 0.85-11 times). :meth:`ElasticResponse.constrained`
+(``graph.elastic_load: contact``) is the frictionless contact's answer instead: each pushed node
+moved along its push by its length and free to slide across it, released where the contact would
+pull, unscaled (docs/press.md, "The answer's scale"). A tiny multiple of the
 stiffness' diagonal keeps a body that nothing holds solvable (it then mostly follows the load
 rigidly). The stiffness is factorised once per scenario, when it is built (with its hierarchy:
 mesh preprocessing, outside a learned frame's time; a process that unpickles a scenario makes
@@ -128,7 +133,8 @@ def _contact_multipliers(coupling: np.ndarray, depth: np.ndarray, released: np.n
         reach = coupling[:, chosen] @ multipliers[chosen]
         if np.all(multipliers >= 0) and np.all(reach[~active] >= depth[~active] * (1 - 1e-9)):
             return multipliers
-        guess = multipliers + (depth - reach) / scale > 0  # pushed where it pulls not, held where it sinks
+        # push where the multiplier stays positive; hold again a released node left inside its push
+        guess = multipliers + (depth - reach) / scale > 0
         if np.array_equal(guess, active):
             break
         active = guess
