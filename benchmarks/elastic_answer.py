@@ -54,7 +54,7 @@ def answers(trajectory, hold: float, push: str = "nearest", load_: str = "force"
     n = scenario.n_body
     elastic = ElasticResponse(scenario.rest_pos, scenario.obstacle_geometry.facets + n, n, scenario.cells,
                               trajectory.config["params"].get("nu"), float(np.median(trajectory.mesh.edge_lengths)),
-                              hold)
+                              hold, load_)
     free = np.arange(scenario.n_nodes) < n
     out = np.empty_like(trajectory.positions)
     start = time.perf_counter()
@@ -63,8 +63,7 @@ def answers(trajectory, hold: float, push: str = "nearest", load_: str = "force"
         pos = scenario.positions(scenario.rest_pos[:n], obstacles)
         loads.append(scenario.penetration(pos, pos, free))
     # as a rollout of a model predicting from rest builds its frames: all of them at once
-    answered = elastic.many(loads) if load_ == "force" else elastic.constrained_many(loads)
-    out[:] = scenario.rest_pos[:n] + np.stack(answered)[:, :n]
+    out[:] = scenario.rest_pos[:n] + np.stack(elastic.many(loads))[:, :n]
     return out, (time.perf_counter() - start) / len(out)
 
 

@@ -21,7 +21,7 @@ from bsms.augment import random_rotation, rotated, trajectories
 from bsms.config import ConfigError
 from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, type_codes, world_positions
 from bsms.graph import bistride_levels
-from bsms.graph.elastic import ElasticResponse
+from bsms.graph.elastic import HOLD, ElasticResponse
 from bsms.graph.frames import SubHierarchy
 from bsms.graph.obstacles import ObstacleReach, Subdivision, facet_edges, subdivide_obstacles
 from bsms.graph.penetration import Clearance, Penetration
@@ -161,7 +161,7 @@ class Scenario:
         reach = None if options.obstacle_margin is None else radius + options.obstacle_margin * edge_length
         clearance = _obstacle_input(Clearance, options.clearance, rest, geometry, n_body, source, radius)
         elastic = _obstacle_input(ElasticResponse, options.elastic, rest, geometry, n_body, source, mesh.cells,
-                                  (params or {}).get("nu"), edge_length)
+                                  (params or {}).get("nu"), edge_length, HOLD, options.elastic_load)
         return cls(
             rest_pos=rest, node_type=node_type, body_id=body_id, edges=edges, cells=mesh.cells, n_body=n_body,
             hierarchy=hierarchy, constants=constants, frame_dt=float(frame_dt), contact_radius=radius,
@@ -228,8 +228,7 @@ class Scenario:
         if not self.options.elastic or self.elastic is None:
             return [self.frame(pos, velocity) for pos, velocity in states]
         loads = [self._penetration(pos, velocity) for pos, velocity in states]
-        answers = self.elastic.many(loads) if self.options.elastic_load == "force" else \
-            self.elastic.constrained_many(loads)
+        answers = self.elastic.many(loads)
         return [self.frame(pos, velocity, inputs=(load, answer))
                 for (pos, velocity), load, answer in zip(states, loads, answers, strict=True)]
 
@@ -274,8 +273,7 @@ class Scenario:
             arrays["penetration"] = penetration[nodes]
             if self.options.elastic:
                 if answer is None:
-                    answer = np.zeros_like(penetration) if self.elastic is None else self.elastic(penetration) \
-                        if self.options.elastic_load == "force" else self.elastic.constrained(penetration)
+                    answer = self.elastic(penetration) if self.elastic is not None else np.zeros_like(penetration)
                 arrays["elastic"] = answer[nodes]
         if self.options.clearance:
             arrays["clearance"] = self.clearance(np.asarray(pos, np.float64), self.node_type == NodeType.FREE)[nodes] \

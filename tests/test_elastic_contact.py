@@ -151,6 +151,9 @@ def test_graph_elastic_load_contact_is_the_contact_answer_in_every_frame():
     with pytest.raises(ConfigError, match=r"^config key 'graph.elastic_load' says how the elastic input loads the "
                                           r"body; set 'graph.elastic: true' too, or leave 'graph.elastic_load' out$"):
         GraphOptions(penetration=True, elastic_load="contact").validate()
+    with pytest.raises(ValueError, match=r"^graph.elastic_load must be one of force, contact, got 'pressure'$"):
+        ElasticResponse(rest, facets, n_body, scenario.cells, 0.3, 0.1, load="pressure")
+    assert scenario.elastic.load == "contact" and forced.elastic.load == "force"
 
 
 def test_a_rollout_solves_for_each_pushed_node_once_and_training_keeps_nothing():

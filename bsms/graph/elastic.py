@@ -158,7 +158,10 @@ class ElasticResponse:
     the container are held."""
 
     def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int, cells: np.ndarray, nu, edge_length: float,
-                 hold: float = HOLD):
+                 hold: float = HOLD, load: str = "force"):
+        if load not in LOADS:
+            raise ValueError(f"graph.elastic_load must be one of {', '.join(LOADS)}, got {load!r}")
+        self.load = load
         if not isinstance(nu, (int, float)) or isinstance(nu, bool):
             raise ValueError(f"graph.elastic needs the material's Poisson ratio: the scene has no numeric parameter "
                              f"'nu' (got {nu!r}); give the scene params a 'nu', or set graph.elastic: false")
@@ -173,20 +176,24 @@ class ElasticResponse:
         keep = np.ones(self.dim * self.n_body, bool)
         keep[(self.dim * self.held[:, None] + np.arange(self.dim)).ravel()] = False
         self.free_dofs = np.flatnonzero(keep)
+        self._dofs = -np.ones(self.dim * self.n_body, np.int64)  # each body dof's free index, -1 where held
+        self._dofs[self.free_dofs] = np.arange(len(self.free_dofs))
         self._factor = None
         self._solver()  # with the hierarchy, once per mesh: a frame only solves
         self.cache_limit = CACHED_NODES
         self._forget()
 
     def _forget(self) -> None:
-        """Drop the unit responses kept for :meth:`constrained`."""
-        self._bank, self._count = np.zeros((len(self.free_dofs), 0, self.dim)), 0
-        self._slot = np.full(self.n_body, -1, np.int64)
-        self._released = np.zeros(self.n_body, bool)  # the last answer's released nodes: the next one's guess
+        """Drop the unit responses kept for :meth:`constrained` and its guess of released nodes."""
+        self.__dict__.update(self._empty_memory())
 
-    def __getstate__(self):  # a factorisation does not pickle: each process makes its own
-        return {**self.__dict__, "_factor": None, "_bank": np.zeros((len(self.free_dofs), 0, self.dim)),
-                "_count": 0, "_slot": np.full(self.n_body, -1, np.int64), "_released": np.zeros(self.n_body, bool)}
+    def _empty_memory(self) -> dict:
+        return {"_bank": np.zeros((len(self.free_dofs), 0, self.dim)), "_count": 0,
+                "_slot": np.full(self.n_body, -1, np.int64),
+                "_released": np.zeros(self.n_body, bool)}  # the last answer's released nodes: the next one's guess
+
+    def __getstate__(self):  # a factorisation does not pickle, nor a rollout's memory: each process makes its own
+        return {**self.__dict__, "_factor": None, **self._empty_memory()}
 
     def _unit_bank(self, nodes: np.ndarray, rows: np.ndarray) -> np.ndarray | None:
         """The slots of ``nodes`` in ``self._bank`` (F, slots, d): K^-1 at the free dofs for a unit
@@ -222,12 +229,16 @@ class ElasticResponse:
     def __call__(self, penetration: np.ndarray) -> np.ndarray:
         """(N, d) for ``penetration`` (N, d) of all scenario nodes (0 outside the obstacles): the
         body's scaled response ``a u`` on its nodes, 0 on the others (and everywhere when no body
-        node is loaded or nothing is free to move)."""
+        node is loaded or nothing is free to move); with ``load`` ``contact``,
+        :meth:`constrained`."""
         return self.many([penetration])[0]
 
     def many(self, penetrations: list[np.ndarray]) -> list[np.ndarray]:
         """:meth:`__call__` of each of ``penetrations``, with one solve for all of them (a solve
-        of many right-hand sides costs about half as much per right-hand side as one alone)."""
+        of many right-hand sides costs about half as much per right-hand side as one alone); with
+        ``load`` ``contact``, :meth:`constrained_many`."""
+        if self.load == "contact":
+            return self.constrained_many(penetrations)
         out = [np.zeros(np.shape(p), np.float64) for p in penetrations]
         loads = [np.asarray(p, np.float64)[: self.n_body] for p in penetrations]
         active = [k for k, p in enumerate(loads) if np.any(p != 0)]
@@ -252,18 +263,16 @@ class ElasticResponse:
         pushed = np.zeros(self.n_body, bool)
         for p in penetrations:
             pushed |= np.any(np.asarray(p)[: self.n_body] != 0, axis=1)
-        dofs = self._free_index()
-        nodes = np.flatnonzero(pushed)
-        nodes = nodes[np.all(dofs[self.dim * nodes[:, None] + np.arange(self.dim)] >= 0, axis=1)]
+        nodes, rows = self._free_nodes(np.flatnonzero(pushed))
         if self.cache_limit and len(nodes):
-            self._unit_bank(nodes, dofs[self.dim * nodes[:, None] + np.arange(self.dim)])
+            self._unit_bank(nodes, rows)
         return [self.constrained(p) for p in penetrations]
 
-    def _free_index(self) -> np.ndarray:
-        """(d N_body,) each body dof's index among the free dofs, -1 where held."""
-        dofs = -np.ones(self.dim * self.n_body, np.int64)
-        dofs[self.free_dofs] = np.arange(len(self.free_dofs))
-        return dofs
+    def _free_nodes(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Those of body ``nodes`` that are not held, and (m, d) their free dof indices."""
+        rows = self._dofs[self.dim * nodes[:, None] + np.arange(self.dim)]
+        free = np.all(rows >= 0, axis=1)
+        return nodes[free], rows[free]
 
     def constrained(self, penetration: np.ndarray) -> np.ndarray:
         """(N, d): the body's answer to ``penetration`` (N, d) as a contact makes it, unscaled: each
@@ -281,13 +290,10 @@ class ElasticResponse:
         out = np.zeros(np.shape(penetration), np.float64)
         push = np.asarray(penetration, np.float64)[: self.n_body]
         depth = np.linalg.norm(push, axis=1)
-        dofs = self._free_index()
-        loaded = np.flatnonzero(depth > 0)
-        loaded = loaded[np.all(dofs[self.dim * loaded[:, None] + np.arange(self.dim)] >= 0, axis=1)]
+        loaded, rows = self._free_nodes(np.flatnonzero(depth > 0))
         if not len(loaded):
             return out
         normals = push[loaded] / depth[loaded, None]
-        rows = dofs[self.dim * loaded[:, None] + np.arange(self.dim)]  # (m, d)
         slots = self._unit_bank(loaded, rows) if self.cache_limit else None
         if slots is None:  # K^-1 C^T: what a unit push of each node along its normal does
             rhs = np.zeros((len(self.free_dofs), len(loaded)))
