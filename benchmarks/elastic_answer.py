@@ -7,7 +7,8 @@ that frame, scaled to them) -- no learning. It is the trivial answer a model wit
 has to beat, scored as learned rollouts are (``vs at rest``: RMSE over all steps over the
 at-rest RMSE; RMSE all relative to the body size). One row per hold distance (in median rest
 edges; the first is the input's), per ``--push`` (how the penetration input puts a node back,
-``graph.push``: ``nearest`` or ``leading``, the facets that face the indenter's travel) and per
+``graph.push``: ``nearest``, ``leading``, the facets that face the indenter's travel, or
+``collider``, the nearest point's vector cut to the travel along it, as the data's solver pushes) and per
 ``--load`` (``graph.elastic_load``: ``force``, the scaled answer to forces along the pushes, or
 ``contact``, the answer with every pushed node moved by its push); where more than one is given,
 each row names it. ``--scale`` adds a table of the factor that best scales each trajectory's
@@ -17,7 +18,7 @@ and load)
     elastic answer: vs at rest E on N trajectories (hold H edges), P ms per frame
 
     python benchmarks/elastic_answer.py --data data/press_stiff [--split test] [--hold 1.0 0.05 0.5]
-        [--push nearest leading] [--load force contact] [--scale]
+        [--push nearest leading collider] [--load force contact] [--scale]
 """
 
 from __future__ import annotations

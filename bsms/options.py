@@ -76,6 +76,9 @@ class GraphOptions:
         obstacle has travelled from rest (outward normal . travel > 0), so that a node a box came
         down onto goes down to its face, never sideways through a side that did not sweep over it
         (:mod:`bsms.graph.penetration`). The same for a disk pressing straight (its leading half).
+        ``collider``: the push the data's solver gives, the nearest point's vector cut to the
+        obstacle's travel along it -- under a box's underside the depth, beside its sides only
+        its sideways travel, nothing where a side trails (a side passes material by).
     clearance: the container (the walls around the body) leaves every graph:
         no nodes of its own, no contact edges to them; each node gets instead, as an input, the
         vector from it to the container's nearest point where that is within the contact radius,
@@ -122,7 +125,7 @@ class GraphOptions:
     displacement: bool = False
     from_rest: bool = False
     penetration: bool = False
-    push: Literal["nearest", "leading"] = "nearest"
+    push: Literal["nearest", "leading", "collider"] = "nearest"
     clearance: bool = False
     drive: bool = False
     elastic: bool = False

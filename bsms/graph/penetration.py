@@ -15,6 +15,15 @@ deeper than a node lies from its side pushes that node down to its face, as the 
 over it did, not sideways out through the side it never crossed (docs/press.md, "The way the
 indenter came").
 
+``push="collider"`` is the push the data's solver gives (:class:`datagen.mpm.colliders.Collider`):
+the nearest point's vector v, but no longer than the obstacle's travel since rest along it,
+v min(1, max(0, travel . v / |v|^2)). The solver's collider acts on a background node inside it
+along the nearest face's normal n, and only on material moving into that face, so it moves
+material along n by the travel along n at most: under a box's underside the whole depth, beside
+its sides only as far as the box moved sideways, and nothing where a side trails -- material a
+side passes by is left where it was (docs/press.md, "What the solver's box does at its corners").
+An obstacle that has not moved pushes as ``nearest``.
+
 Outlines are the connected components of the (subdivided) obstacle facets -- segments in 2D,
 triangles in 3D; a component is a container when it encloses most of the body's rest nodes
 (the box's walls), and it is then left out: a body is inside its container by design.
@@ -167,7 +176,7 @@ class Penetration:
 
     rest: (N, d) rest positions of all scenario nodes; facets: (F, d) obstacle segments (2D) or
     triangles (3D) in scenario node indices; n_body: body node count (nodes before it are the
-    body's); push: ``nearest`` or ``leading`` (``graph.push``, the module's docstring)."""
+    body's); push: ``nearest``, ``leading`` or ``collider`` (``graph.push``, the module's docstring)."""
 
     def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int, push: str = "nearest"):
         if push not in PUSHES:
@@ -175,11 +184,11 @@ class Penetration:
         self.outlines, _ = outlines(rest, facets, n_body)
         self.push = push
         rest = np.asarray(rest, np.float64)
-        # per outline ("leading" only): its nodes, their rest centroid and the signs that turn its
-        # facets' normals outward
-        leading = push == "leading"
-        self._nodes = [np.unique(o) if leading else None for o in self.outlines]
-        self._rest_centres = [rest[n].mean(0) if leading else None for n in self._nodes]
+        # per outline: its nodes and their rest centroid (how far it travelled: "leading", "collider"),
+        # and the signs that turn its facets' normals outward ("leading")
+        moves, leading = push != "nearest", push == "leading"
+        self._nodes = [np.unique(o) if moves else None for o in self.outlines]
+        self._rest_centres = [rest[n].mean(0) if moves else None for n in self._nodes]
         self._outward = [_outward_signs([rest[o[:, i]] for i in range(o.shape[1])]) if leading else None
                          for o in self.outlines]
 
@@ -187,7 +196,8 @@ class Penetration:
         """(N, d): for free nodes at ``pos`` inside an obstacle outline placed at ``coming`` (N, d:
         where every node will be at the coming frame; only obstacle rows are read), the vector to
         the outline's nearest point (``push="leading"``: of its facets facing the way it travelled
-        from rest); 0 elsewhere."""
+        from rest; ``push="collider"``: the nearest point's vector cut to the travel along it); 0
+        elsewhere."""
         out = np.zeros_like(pos, dtype=np.float64)
         points = np.flatnonzero(free)
         for outline, nodes, centre, outward in zip(self.outlines, self._nodes, self._rest_centres, self._outward,
@@ -198,13 +208,18 @@ class Penetration:
             inside = near[_inside(pos[near], corners)]
             if not len(inside):
                 continue
+            push = closest_on_facets(pos[inside], corners) - pos[inside]
+            travel = coming[nodes].mean(0) - centre if self.push != "nearest" else None
             if self.push == "leading":
-                corners = _leading(corners, outward, coming[nodes].mean(0) - centre, high - low)
-            out[inside] += closest_on_facets(pos[inside], corners) - pos[inside]
+                push = closest_on_facets(pos[inside], _leading(corners, outward, travel, high - low)) - pos[inside]
+            elif self.push == "collider" and np.linalg.norm(travel) > 1e-6 * float(np.max(high - low)):
+                depth2 = np.maximum((push * push).sum(1), np.finfo(float).tiny)
+                push *= np.clip(push @ travel / depth2, 0.0, 1.0)[:, None]
+            out[inside] += push
         return out
 
 
-PUSHES = ("nearest", "leading")
+PUSHES = ("nearest", "leading", "collider")
 
 
 def _normals(corners: list[np.ndarray]) -> np.ndarray:
