@@ -1,7 +1,20 @@
-"""Shared test fixtures."""
+"""Shared test fixtures.
 
-import pytest
-import torch
+The suite runs in two worker processes (pytest-xdist, ``-n 2`` in pyproject.toml's addopts; ``-n 0``
+runs it in one): each worker, and every process a test starts, computes on one thread, so that two
+workers on two cores do not fight over them (torch's OpenMP threads slow many times over when
+another process holds a core)."""
+
+import os
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ["OMP_NUM_THREADS"] = "1"
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(1)
 
 
 @pytest.fixture
