@@ -208,11 +208,11 @@ class Penetration:
             inside = near[_inside(pos[near], corners)]
             if not len(inside):
                 continue
-            push = closest_on_facets(pos[inside], corners) - pos[inside]
             travel = coming[nodes].mean(0) - centre if self.push != "nearest" else None
             if self.push == "leading":
-                push = closest_on_facets(pos[inside], _leading(corners, outward, travel, high - low)) - pos[inside]
-            elif self.push == "collider" and np.linalg.norm(travel) > 1e-6 * float(np.max(high - low)):
+                corners = _leading(corners, outward, travel, high - low)
+            push = closest_on_facets(pos[inside], corners) - pos[inside]
+            if self.push == "collider" and _moved(travel, high - low):
                 depth2 = np.maximum((push * push).sum(1), np.finfo(float).tiny)
                 push *= np.clip(push @ travel / depth2, 0.0, 1.0)[:, None]
             out[inside] += push
@@ -243,12 +243,17 @@ def _outward_signs(corners: list[np.ndarray]) -> np.ndarray:
     return np.where(inside, -1.0, 1.0)  # in blocks: a 3D test holds (probes, facets, 3) at once
 
 
+def _moved(travel: np.ndarray, extent: np.ndarray) -> bool:
+    """Whether an outline of ``extent`` has moved from rest by ``travel`` (more than a millionth of it)."""
+    return bool(np.linalg.norm(travel) > 1e-6 * float(np.max(extent)))
+
+
 def _leading(corners: list[np.ndarray], outward: np.ndarray, travel: np.ndarray, extent: np.ndarray
              ) -> list[np.ndarray]:
     """The facets of ``corners`` whose outward normal has a positive part along ``travel`` (how far
     the outline's centre has moved from rest); all of them where it has not moved (by a millionth
     of its ``extent``)."""
-    if np.linalg.norm(travel) <= 1e-6 * float(np.max(extent)):
+    if not _moved(travel, extent):
         return corners
     facing = outward * (_normals(corners) @ travel) > 0
     return [c[facing] for c in corners]
