@@ -126,7 +126,10 @@ class TrainConfig:
     and bodies that hardly move are not drowned by those that move far. rotate: each training
     sample turned by a random angle up to this many degrees (0: off; 180: any orientation;
     :mod:`bsms.augment`), for scenes whose physics has no preferred direction (gravity negligible);
-    one-step training of Lagrangian data."""
+    one-step training of Lagrangian data. shard: with several processes (``torchrun``), each holds
+    only its share of the training trajectories and draws its part of every batch from it
+    (:mod:`bsms.batches`): the training set's memory divided by the process count, for data sets
+    too large to hold once per process; ``batch_size`` a multiple of the process count."""
 
     steps: int = 10_000
     batch_size: int = 2
@@ -149,6 +152,7 @@ class TrainConfig:
     tensorboard: bool = False
     loss_weight: Literal["uniform", "motion"] = "uniform"
     rotate: float = 0.0
+    shard: bool = False
 
     def validate(self, prefix: str) -> None:
         if not 0.0 <= self.rotate <= 180.0:

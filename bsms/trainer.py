@@ -10,12 +10,14 @@ stops training after the step under way, with ``latest.pt`` saved at that step; 
 stops at once.
 
 Determinism: the samples of step ``s`` are a function of (seed, s) only (a per-epoch
-permutation), and the training noise of a sample of (seed, s, index), so a resumed run
-continues exactly and a batch split over processes sees the same noise as one process. Launched
-with ``torchrun --nproc_per_node K``, each process takes every K-th sample of the global batch;
-gradients are summed over processes after each process divided its squared error sum by the
-free-node count of the whole batch, which makes the update identical to one process on the
-whole batch (normaliser statistics are summed over processes too). Multi-step training
+permutation, :mod:`bsms.batches`), and the training noise of a sample of (seed, s, index), so a
+resumed run continues exactly and a batch split over processes sees the same noise as one
+process. Launched with ``torchrun --nproc_per_node K``, each process takes every K-th sample of
+the global batch (or, with ``train.shard``, holds a K-th of the training trajectories and draws
+its part of the batch from them); gradients are summed over processes after each process
+divided its squared error sum by the free-node count of the whole batch, which makes the update
+identical to one process on the whole batch (normaliser statistics are summed over processes
+too). Multi-step training
 (``train.unroll``) unrolls each sample over several model steps (:mod:`bsms.unroll`); the
 validation RMSE stays one-step.
 """
@@ -36,6 +38,7 @@ import torch.distributed as dist
 import yaml
 from tqdm import tqdm
 
+from bsms.batches import Batches, shard_of
 from bsms.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_checkpoint
 from bsms.config import ConfigError, load, to_dict
 from bsms.data import FrameDataset
@@ -64,7 +67,7 @@ _ADDED = {"dataset.kind": "mpm", "graph.contact_distance": None, "train.unroll":
           "train.unroll_warmup": 0, "graph.displacement": False, "graph.from_rest": False, "train.trajectories": None,
           "graph.penetration": False, "graph.clearance": False, "graph.drive": False, "train.rotate": 0.0,
           "graph.elastic": False, "graph.elastic_residual": False, "graph.push": "nearest",
-          "graph.elastic_load": "force"}
+          "graph.elastic_load": "force", "train.shard": False}
 
 
 def _flat(data: dict, prefix: str = "") -> dict:
@@ -185,6 +188,8 @@ class Trainer:
         if len(self.samples) < config.train.batch_size:
             raise ConfigError(f"config key 'train.batch_size' ({config.train.batch_size}) exceeds the "
                               f"{len(self.samples)} training samples of {self.dataset_folder}")
+        t = config.train
+        self.batches = Batches(len(self.samples), t.batch_size, t.seed, self.rank, self.world, t.shard)
         _seed_everything(config.train.seed)
         self.model = build_model(config, self.train_set.dim, self.train_set.spec).to(self.device)
         if self.world > 1:
@@ -211,7 +216,7 @@ class Trainer:
             raise ConfigError(f"config key 'train.trajectories' asks for {wanted} training trajectories, but "
                               f"{self.dataset_folder / 'train'} holds {len(files)}; ask for fewer or generate more "
                               "(splits.train in the dataset config)")
-        return files[:wanted]
+        return shard_of(files[:wanted], self.rank, self.world, self.config.train.shard)
 
     @staticmethod
     def _init_distributed() -> tuple[int, int]:
@@ -303,18 +308,12 @@ class Trainer:
 
     # -- batches
     def global_batch(self, step: int) -> list[int]:
-        """Sample indices of ``step`` (all processes): a slice of a per-epoch permutation."""
-        n, size = len(self.samples), self.config.train.batch_size
-        per_epoch = n // size
-        epoch, k = divmod(step, per_epoch)
-        order = np.random.default_rng([self.config.train.seed, epoch]).permutation(n)
-        return [int(i) for i in order[k * size:(k + 1) * size]]
-
-    def _keys(self, step: int) -> list[tuple[int, tuple[int, int, int]]]:
-        return [(i, (self.config.train.seed, step, i)) for i in self.global_batch(step)[self.rank::self.world]]
+        """Sample indices of ``step``: the global batch (all processes), or this process's own
+        with ``train.shard`` (:class:`bsms.batches.Batches`)."""
+        return self.batches.drawn(step)
 
     def _loader(self, start: int, stop: int):
-        keys = [self._keys(s) for s in range(start, stop)]
+        keys = [self.batches.keys(s) for s in range(start, stop)]
         # the loader's own generator, so that starting it does not draw from the global torch RNG
         # (a resumed run then continues the global stream, e.g. of dropout, exactly)
         generator = torch.Generator().manual_seed(self.config.train.seed * 1_000_003 + start)

@@ -1,5 +1,6 @@
 """bsms.trainer, bsms.checkpoint and train.py: learning, exact resume, data parallelism, errors."""
 
+import json
 import os
 import subprocess
 import sys
@@ -182,14 +183,15 @@ def test_resume_continues_exactly(tiny_dataset, folder, tmp_path, one_thread):
 
 
 def test_two_processes_make_the_update_of_one(tiny_dataset, folder, tmp_path):
-    """torchrun with 2 gloo processes, each on half the batch, equals one process on all of it."""
+    """torchrun with 2 gloo processes, each on half the batch, equals one process on all of it;
+    with train.shard each process holds half the training trajectories instead of all."""
     data = config_dict(tiny_dataset, tmp_path, train={"steps": 3, "batch_size": 4, "normalizer_steps": 2})
     outputs = {}
-    for label, launcher in (("one", [sys.executable]),
-                            ("two", [sys.executable, "-m", "torch.distributed.run", "--standalone",
-                                     "--nproc_per_node", "2"])):
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
+    for label, launcher, shard in (("one", [sys.executable], False), ("two", torchrun, False),
+                                   ("sharded", torchrun, True)):
         config = tmp_path / f"{label}.yaml"
-        config.write_text(yaml.safe_dump({**data, "name": label}))
+        config.write_text(yaml.safe_dump({**data, "name": label, "train": {**data["train"], "shard": shard}}))
         outputs[label] = tmp_path / f"{label}.pt"
         env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": os.pathsep.join(sys.path)}
         result = subprocess.run([*launcher, str(ROOT / "tests" / "ddp_worker.py"), str(config), str(folder),
@@ -204,6 +206,13 @@ def test_two_processes_make_the_update_of_one(tiny_dataset, folder, tmp_path):
     moved = max(float((one[name] - initial[name]).abs().max()) for name in initial if "normalizer" not in name)
     assert moved > 5e-4, "the steps must have changed the weights for the comparison to mean anything"  # 2e-3
     assert one["node_normalizer.count"] > 0 and torch.equal(one["node_normalizer.count"], two["node_normalizer.count"])
+    train = [str(f) for f in split_files(folder, "train")]
+    held = {label: [json.loads(Path(f"{outputs[label]}.rank{r}.json").read_text()) for r in (0, 1)]
+            for label in ("two", "sharded")}
+    assert len(train) == 2 and held["two"] == [train, train] and held["sharded"] == [train[:1], train[1:]]
+    sharded = torch.load(outputs["sharded"])
+    assert all(bool(torch.isfinite(v).all()) for v in sharded.values())
+    assert max(float((sharded[name] - initial[name]).abs().max()) for name in initial if "normalizer" not in name) > 5e-4
 
 
 def test_checkpoint_reproduces_predictions_in_a_fresh_process(tiny_dataset, folder, tmp_path, one_thread):
