@@ -51,3 +51,10 @@ def test_sharded_batches_must_split_evenly_and_fit_each_share():
                                           r"\(3 samples\) of the training set$"):
         Batches(3, 8, seed=0, rank=1, world=2, shard=True)
     assert Batches(40, 5, seed=0, rank=0, world=2).size == 5, "whole batches split unevenly as before"
+
+
+def test_a_share_smaller_than_the_global_batch_is_enough():
+    """Sharded, a process needs batch_size / K samples, not batch_size."""
+    plan = Batches(5, 8, seed=0, rank=1, world=2, shard=True)
+    assert [len(plan.keys(step)) for step in range(3)] == [4, 4, 4]
+    assert set(plan.drawn(0)) <= set(range(5)) and len(set(plan.drawn(0))) == 4

@@ -188,10 +188,11 @@ def test_two_processes_make_the_update_of_one(tiny_dataset, folder, tmp_path):
     data = config_dict(tiny_dataset, tmp_path, train={"steps": 3, "batch_size": 4, "normalizer_steps": 2})
     outputs = {}
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
-    for label, launcher, shard in (("one", [sys.executable], False), ("two", torchrun, False),
-                                   ("sharded", torchrun, True)):
+    # sharded: a batch of 8 from shares of 5 samples each (10 in all), 4 per process
+    for label, launcher, train in (("one", [sys.executable], {}), ("two", torchrun, {}),
+                                   ("sharded", torchrun, {"shard": True, "batch_size": 8})):
         config = tmp_path / f"{label}.yaml"
-        config.write_text(yaml.safe_dump({**data, "name": label, "train": {**data["train"], "shard": shard}}))
+        config.write_text(yaml.safe_dump({**data, "name": label, "train": {**data["train"], **train}}))
         outputs[label] = tmp_path / f"{label}.pt"
         env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": os.pathsep.join(sys.path)}
         result = subprocess.run([*launcher, str(ROOT / "tests" / "ddp_worker.py"), str(config), str(folder),
