@@ -308,8 +308,8 @@ class FrameDataset(NumberedSamples):
 
     Scenarios (hierarchies) are built once per file (``cache_dir`` keeps hierarchies across
     runs); states are held in memory in float64: Lagrangian positions (all scenario nodes,
-    moving obstacles placed per frame, :meth:`Scenario.positions`) and input velocities
-    (:func:`frame_velocities`; kinematic nodes: the velocity of the coming step), or Eulerian
+    moving obstacles placed per frame, :meth:`Scenario.positions`; input velocities are
+    differenced from them per sample, :meth:`sample_velocities`), or Eulerian
     states (:mod:`bsms.fields`). ``spec``: the field spec of the
     files (they must share one). Items are addressed by an integer, or by ``(index,
     noise_seed)`` to add the training noise of ``noise`` drawn from that seed, so the noise of
@@ -326,7 +326,7 @@ class FrameDataset(NumberedSamples):
         self.options, self.noise, self.rotate = options, noise or NoiseOptions(), float(rotate)
         self.scenarios: list[Scenario] = []
         self.positions: list[np.ndarray] = []
-        self.velocities: list[np.ndarray] = []
+        self.initial: list[np.ndarray] = []  # each trajectory's frame-0 velocity (N, d)
         self.states: list[np.ndarray] = []
         self.spec: FieldSpec | None = None
         for trajectory, source in tqdm(trajectories(self.files, mirror), desc="graphs", unit="traj",
@@ -345,7 +345,7 @@ class FrameDataset(NumberedSamples):
             positions = scenario.positions(world, trajectory.obstacle_positions)
             initial = scenario.full(initial_velocity(spec, trajectory, world)[None], 0.0)[0]
             self.positions.append(positions)
-            self.velocities.append(frame_velocities(positions, initial, scenario.frame_dt, scenario.kinematic))
+            self.initial.append(initial)
         self.dim = self.spec.dim
         if self.rotate and self.states:
             raise ConfigError(f"config key 'train.rotate' turns positions and velocities; {self.files[0]} holds "
@@ -411,13 +411,27 @@ class FrameDataset(NumberedSamples):
             graph = rotated(graph, random_rotation(self.dim, self.rotate, rng))
         return graph
 
+    def trajectory_velocities(self, k: int) -> np.ndarray:
+        """(T, N, d) the input velocities of Lagrangian trajectory k (:func:`frame_velocities`)."""
+        scenario = self.scenarios[k]
+        return frame_velocities(self.positions[k], self.initial[k], scenario.frame_dt, scenario.kinematic)
+
+    def sample_velocities(self, k: int, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """The input velocities (N, d) of frames t and t + 1 of trajectory k, as
+        :meth:`trajectory_velocities` gives them, from the frames they need (computed per sample,
+        not kept per trajectory: a scene's memory is mostly its states)."""
+        positions, scenario, start = self.positions[k], self.scenarios[k], max(t - 1, 0)
+        initial = self.initial[k] if start == 0 else np.zeros_like(self.initial[k])  # row 0 unused then
+        window = frame_velocities(positions[start:t + 3], initial, scenario.frame_dt, scenario.kinematic)
+        return window[t - start].copy(), window[t + 1 - start]
+
     def sample_state(self, k: int, t: int, noise_seed=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(pos, velocity, target) of the Lagrangian sample of frame t of trajectory k, (N, d)
         float64 of every scenario node: the inputs (with the training noise drawn from
         ``noise_seed``, if given) and the one-step target of its graph."""
-        scenario, positions, velocities = self.scenarios[k], self.positions[k], self.velocities[k]
-        pos, velocity = positions[t].copy(), velocities[t].copy()
-        target = velocities[t + 1] - velocities[t]
+        scenario, positions = self.scenarios[k], self.positions[k]
+        velocity, coming = self.sample_velocities(k, t)
+        pos, target = positions[t].copy(), coming - velocity
         if self.options.from_rest:  # free nodes at rest, without velocity; the target: x_{t+1} - X over dt
             free = (scenario.node_type == NodeType.FREE)[:, None]
             rest = scenario.rest_pos
@@ -425,7 +439,7 @@ class FrameDataset(NumberedSamples):
                     np.where(free, (positions[t + 1] - rest) / scenario.frame_dt, target))
         if self.options.quasi_static:
             free = (scenario.node_type == NodeType.FREE)[:, None]
-            target = np.where(free, velocities[t + 1], target)
+            target = np.where(free, coming, target)
             if noise_seed is not None and self.noise.position > 0:
                 dx = free * np.random.default_rng(noise_seed).normal(0.0, self.noise.position, pos.shape)
                 pos += dx

@@ -61,7 +61,7 @@ def _stub(rule):
 
 
 def test_an_exact_model_rolls_out_along_the_data_and_sees_only_the_drive(frames):
-    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.velocities[0]
+    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.trajectory_velocities(0)
     free = scenario.node_type == NodeType.FREE
     steps = len(x) - 1
     model = _stub(_truth_rule(x, scenario))
@@ -82,7 +82,7 @@ def test_an_exact_model_rolls_out_along_the_data_and_sees_only_the_drive(frames)
 def test_a_biased_model_errs_by_the_same_amount_every_frame(frames):
     """No error is carried over: a constant output bias b moves every predicted frame by
     dt b std (a quasi-static model's error would grow by that much per frame)."""
-    scenario, x, v = frames.scenarios[1], frames.positions[1], frames.velocities[1]
+    scenario, x, v = frames.scenarios[1], frames.positions[1], frames.trajectory_velocities(1)
     free = scenario.node_type == NodeType.FREE
     model = _stub(_truth_rule(x, scenario, bias=0.5))
     result = rollout(model, scenario, x[0], v[0], len(x) - 1, known_positions=x, warmup=0, precision="f32")
@@ -129,7 +129,7 @@ def test_from_rest_with_unrolled_training_is_a_config_error(tiny_dataset, tmp_pa
 def test_all_frames_in_one_call_equal_the_frame_by_frame_rollout(frames):
     """Frames that do not depend on each other go into one model call (frames_per_call); the
     rollout is the same as one call per frame, to float32 round-off."""
-    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.velocities[0]
+    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.trajectory_velocities(0)
     steps = len(x) - 1
     torch.manual_seed(0)
     model = LearnedSimulator("bsms_gnn", 2, n_levels=3, contact=True, latent=16)
@@ -151,7 +151,7 @@ def test_all_frames_in_one_call_equal_the_frame_by_frame_rollout(frames):
 def test_cpu_calls_hold_at_most_the_node_budget(frames, monkeypatch):
     """On a CPU, frames_per_call is capped so that a call holds at most CPU_NODES_PER_CALL graph
     nodes (at least one frame): same rollout, more calls."""
-    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.velocities[0]
+    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.trajectory_velocities(0)
     steps = len(x) - 1
     torch.manual_seed(0)
     model = LearnedSimulator("bsms_gnn", 2, n_levels=3, contact=True, latent=16)
@@ -177,7 +177,7 @@ def test_compiled_message_passing_gets_the_larger_call_budget(frames, monkeypatc
     """A lean model whose message passes are all compiled (Linear, ReLU, Linear edge MLPs, float32)
     is capped by CPU_NODES_PER_CALL_COMPILED; the same model in bf16, or a model with LayerNorm,
     by CPU_NODES_PER_CALL."""
-    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.velocities[0]
+    scenario, x, v = frames.scenarios[0], frames.positions[0], frames.trajectory_velocities(0)
     steps = len(x) - 1
     torch.manual_seed(0)
     lean = LearnedSimulator("bsms_gnn", 2, n_levels=3, contact=True, latent=16, hidden_layers=1,
@@ -199,7 +199,7 @@ def test_compiled_message_passing_gets_the_larger_call_budget(frames, monkeypatc
 
 def test_frames_that_depend_on_each_other_step_one_by_one(folder):
     dependent = FrameDataset(split_files(folder, "train"), GraphOptions(levels=3, quasi_static=True))
-    scenario, x, v = dependent.scenarios[0], dependent.positions[0], dependent.velocities[0]
+    scenario, x, v = dependent.scenarios[0], dependent.positions[0], dependent.trajectory_velocities(0)
     model = _stub(lambda model, graph: torch.zeros_like(graph.pos))
     rollout(model, scenario, x[0], v[0], 4, known_positions=x, warmup=0, precision="f32", frames_per_call=4)
     assert len(model.seen) == 4

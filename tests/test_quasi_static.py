@@ -72,7 +72,7 @@ def unroll_and_roll_out(frames):
     rolled = Stub(_rule)
     rolled.load_state_dict(unrolled.state_dict())
     unrolled_loss(unrolled, collate([samples[len(samples) - 1]]), samples, K, "through")
-    x, v = frames.positions[j], frames.velocities[j]
+    x, v = frames.positions[j], frames.trajectory_velocities(j)
     result = rollout(rolled, frames.scenarios[j], x[t], v[t], K, known_positions=x[t:], warmup=0, precision="f32")
     for k, (a, b) in enumerate(zip(unrolled.seen, rolled.seen, strict=True)):
         for name, p, q in zip(("pos", "velocity", "nodes"), a, b, strict=True):

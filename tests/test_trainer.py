@@ -15,7 +15,7 @@ from torch_geometric.data import Batch
 
 from bsms.checkpoint import CheckpointError, load_checkpoint
 from bsms.config import ConfigError
-from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
+from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions, frame_velocities
 from bsms.models.simulator import LearnedSimulator
 from bsms.run import build_model, load_config, load_model, prepare_dataset, split_files
 from bsms.trainer import Trainer, lr_factor
@@ -34,6 +34,20 @@ def folder(tiny_dataset, tmp_path_factory):
 
 
 # ----------------------------------------------------------------------------- samples
+def test_a_samples_velocities_are_the_whole_trajectorys(folder, monkeypatch):
+    """FrameDataset.sample_velocities differences only the frames a sample needs; it must give exactly what
+    frame_velocities gives over the whole trajectory, kinematic nodes (every third here) included."""
+    dataset = FrameDataset(split_files(folder, "train"), GraphOptions(levels=2))
+    scenario_type = type(dataset.scenarios[0])
+    monkeypatch.setattr(scenario_type, "kinematic", property(lambda self: np.arange(len(self.node_type)) % 3 == 0))
+    for k, (scenario, positions) in enumerate(zip(dataset.scenarios, dataset.positions, strict=True)):
+        whole = frame_velocities(positions, dataset.initial[k], scenario.frame_dt, scenario.kinematic)
+        assert np.array_equal(dataset.trajectory_velocities(k), whole)
+        for t in range(len(positions) - 1):
+            velocity, coming = dataset.sample_velocities(k, t)
+            assert np.array_equal(velocity, whole[t]) and np.array_equal(coming, whole[t + 1]), (k, t)
+
+
 def test_samples_integrate_to_the_next_frame(folder):
     """No noise: x_t + dt (v_t + target) is frame t+1; v_t is the backward difference."""
     dataset = FrameDataset(split_files(folder, "train"), GraphOptions(levels=2))
@@ -69,7 +83,7 @@ def test_noise_is_corrected_in_the_target(folder, gamma):
 
 def resting_on_the_floor(dataset: FrameDataset, k: int):
     """The last frame of trajectory ``k`` with its letters moved down to rest on the floor y = 0."""
-    scenario, positions, velocities = dataset.scenarios[k], dataset.positions[k], dataset.velocities[k]
+    scenario, positions, velocities = dataset.scenarios[k], dataset.positions[k], dataset.trajectory_velocities(k)
     body = scenario.node_type != NodeType.OBSTACLE
     assert not body.all() and (scenario.body_id[~body] == scenario.body_id.max()).all()
     pos = positions[-1].copy()

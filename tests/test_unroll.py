@@ -144,7 +144,7 @@ def test_a_zero_model_drifts_at_constant_velocity_and_is_corrected(frames):
         for (j, t), nodes, pos, velocity, target in zip(
                 located, per_sample(graph, graph.scenario_nodes), per_sample(graph, graph.pos),
                 per_sample(graph, graph.velocity), per_sample(graph, graph.target), strict=True):
-            scenario, x, v = frames.scenarios[j], frames.positions[j], frames.velocities[j]
+            scenario, x, v = frames.scenarios[j], frames.positions[j], frames.trajectory_velocities(j)
             dt, nodes = scenario.frame_dt, nodes.numpy()
             free = scenario.node_type[nodes] == NodeType.FREE
             drift = x[t] + k * dt * v[t]
@@ -170,7 +170,7 @@ def test_the_unroll_integrates_as_a_rollout(frames):
     unrolled.output_normalizer.accumulate(torch.randn(50, 2))
     rolled = copy.deepcopy(unrolled)
     unrolled_loss(unrolled, collate([samples[len(samples) - 1]]), samples, K, "through")
-    x, v = frames.positions[j], frames.velocities[j]
+    x, v = frames.positions[j], frames.trajectory_velocities(j)
     rollout(rolled, frames.scenarios[j], x[t], v[t], K, known_positions=x[t:], warmup=0, precision="f32")
     assert len(unrolled.seen) == len(rolled.seen) == K
     for k, (a, b) in enumerate(zip(unrolled.seen, rolled.seen, strict=True)):
