@@ -39,11 +39,12 @@ class Batches:
     """The sample indices (into the process's own training set) and noise keys of each step.
 
     n_samples: how many samples this process holds; batch_size: the global batch
-    (``train.batch_size``); sharded batches need it divisible by ``world``.
+    (``train.batch_size``); sharded batches need it divisible by ``world``. source: where the
+    samples come from, for the error when they are fewer than a batch.
     """
 
     def __init__(self, n_samples: int, batch_size: int, seed: int, rank: int = 0, world: int = 1,
-                 shard: bool = False):
+                 shard: bool = False, source: str = "the training set"):
         self.sharded = bool(shard and world > 1)
         if self.sharded and batch_size % world:
             raise ConfigError(f"config key 'train.shard' splits each batch evenly over the {world} processes; set "
@@ -51,8 +52,9 @@ class Batches:
                               "false'")
         self.size = batch_size // world if self.sharded else batch_size
         if n_samples < self.size:
-            where = f"this process's share ({n_samples} samples)" if self.sharded else f"the {n_samples} samples"
-            raise ConfigError(f"config key 'train.batch_size' ({batch_size}) exceeds {where} of the training set")
+            where = (f"this process's share ({n_samples} samples) of the training set" if self.sharded
+                     else f"the {n_samples} training samples of {source}")
+            raise ConfigError(f"config key 'train.batch_size' ({batch_size}) exceeds {where}")
         self.n, self.seed, self.rank, self.world = int(n_samples), int(seed), int(rank), int(world)
 
     def drawn(self, step: int) -> list[int]:

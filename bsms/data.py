@@ -423,7 +423,7 @@ class FrameDataset(NumberedSamples):
         positions, scenario, start = self.positions[k], self.scenarios[k], max(t - 1, 0)
         initial = self.initial[k] if start == 0 else np.zeros_like(self.initial[k])  # row 0 unused then
         window = frame_velocities(positions[start:t + 3], initial, scenario.frame_dt, scenario.kinematic)
-        return window[t - start].copy(), window[t + 1 - start]
+        return window[t - start], window[t + 1 - start]  # a fresh array: the caller may change it
 
     def sample_state(self, k: int, t: int, noise_seed=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(pos, velocity, target) of the Lagrangian sample of frame t of trajectory k, (N, d)

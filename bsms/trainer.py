@@ -186,10 +186,8 @@ class Trainer:
         self.valid_vs_rest = None  # the last rollout validation's skill (bsms.motion)
         self.samples = UnrollSamples(self.train_set, config.train.unroll)  # (trajectory, t) with t + K <= T - 1
         t = config.train
-        if not (t.shard and self.world > 1) and len(self.samples) < t.batch_size:  # a share: bsms.batches checks
-            raise ConfigError(f"config key 'train.batch_size' ({t.batch_size}) exceeds the "
-                              f"{len(self.samples)} training samples of {self.dataset_folder}")
-        self.batches = Batches(len(self.samples), t.batch_size, t.seed, self.rank, self.world, t.shard)
+        self.batches = Batches(len(self.samples), t.batch_size, t.seed, self.rank, self.world, t.shard,
+                               source=str(self.dataset_folder))
         _seed_everything(config.train.seed)
         self.model = build_model(config, self.train_set.dim, self.train_set.spec).to(self.device)
         if self.world > 1:
