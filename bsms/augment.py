@@ -18,6 +18,7 @@ from the local geometry and the load, which is what carries to shapes it has not
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -27,7 +28,7 @@ from bsms.config import ConfigError
 from datagen.dataset import load
 from datagen.mesh import Mesh
 
-__all__ = ["mirrored", "trajectories", "random_rotation", "rotated", "ROTATED_FIELDS"]
+__all__ = ["mirrored", "trajectories", "random_rotation", "rotated", "reflected", "ROTATED_FIELDS"]
 
 # The vector fields of a graph on its level-0 nodes (bsms.level_graph.LevelGraph) that turn with it;
 # everything else in a graph is a scalar, an index, or derived from these by the model.
@@ -103,3 +104,17 @@ def rotated(graph, rotation: np.ndarray):
         if key in graph:
             graph[key] = graph[key] @ matrix.to(graph[key].dtype)
     return graph
+
+
+def reflected(graph):
+    """A new graph: ``graph`` (a LevelGraph, one frame or a batch) reflected by x -> -x, every
+    vector field of :data:`ROTATED_FIELDS` it holds with its first component negated; the other
+    fields are ``graph``'s own (shared, not copied). The reflection keeps every distance, so the
+    levels, contact edges and transitions built for ``graph`` are the reflected scene's too."""
+    out = copy.copy(graph)
+    for key in ROTATED_FIELDS:
+        if key in graph:
+            value = graph[key].clone()
+            value[:, 0] = -value[:, 0]
+            out[key] = value
+    return out

@@ -8,7 +8,7 @@ Each subcommand runs the same code as the entry point beside it (which keeps wor
     bsms evaluate RUN [--split test]                          python -m bsms.evaluate
     bsms infer RUN --mesh FILE [--solver]                     python -m bsms.infer
     bsms convert deepmind|authors SRC DST                     python -m bsms.datasets convert
-    bsms export RUN OUT [--which best|latest]                 python -m bsms.pretrained
+    bsms export RUN OUT [--which best|latest] [--set K=V]     python -m bsms.pretrained
 
 A subcommand's module is imported only when it runs, so ``bsms --help`` answers at once.
 """

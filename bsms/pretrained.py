@@ -14,6 +14,10 @@ that every command taking a run reads (``bsms.infer``, ``bsms.evaluate``):
 ``python -m bsms.pretrained RUN RUN ... OUT`` writes an ensemble folder (:mod:`bsms.ensemble`):
 each run exported as above into ``OUT/members/<k>-<run name>``, and ``OUT/ensemble.yaml``
 listing them, written last; the runs must share their graph options and their family's scene.
+
+``--set KEY=VALUE`` changes a config key of :data:`SETTABLE` in what is written: keys that say how
+the weights answer at inference, not what they are (``--set model.mirror_average=true``: a run
+trained with ``train.mirror`` answers as the mean of it and its mirror image, :mod:`bsms.models.config`).
 """
 
 from __future__ import annotations
@@ -33,19 +37,57 @@ from bsms.ensemble import ENSEMBLE_FILE, check_members, is_ensemble
 from bsms.run import Config, checkpoint_path, find_checkpoint, run_dataset_config
 from datagen.atomic import atomic_path
 
-__all__ = ["KEEP", "export", "export_ensemble", "main"]
+__all__ = ["KEEP", "SETTABLE", "export", "export_ensemble", "main", "parse_settings"]
 
 KEEP = ("format", "config", "dim", "fields", "step", "best_valid", "seconds", "model")
 """The checkpoint entries a pretrained model keeps (inference needs no optimiser state)."""
 
+SETTABLE = {"model.mirror_average": bool}
+"""Config keys an export may change (``--set``), with their type: how trained weights answer at
+inference, never what they are."""
 
-def export(run_dir, out, which: str = "best") -> Path:
-    """Write the pretrained folder ``out`` from run ``run_dir``'s checkpoint ``which``; returns
-    the new checkpoint's path. Raises CheckpointError naming the run when it cannot be used."""
+
+def parse_settings(items) -> dict:
+    """``KEY=VALUE`` strings -> {key: value} for keys of :data:`SETTABLE` (values read as YAML).
+    Raises ConfigError naming the item that is not one."""
+    settings = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or key not in SETTABLE:
+            raise ConfigError(f"--set {item!r}: give KEY=VALUE with KEY one of {', '.join(SETTABLE)} (keys that "
+                              "change how the weights answer, not what they are)")
+        value = yaml.safe_load(text)
+        if type(value) is not SETTABLE[key]:
+            raise ConfigError(f"--set {item!r}: {key} takes a {SETTABLE[key].__name__}, got {text!r}")
+        settings[key] = value
+    return settings
+
+
+def _with_settings(state: dict, config: Config, settings: dict, run_dir: Path) -> tuple[dict, Config]:
+    """``state`` and ``config`` with ``settings`` (:func:`parse_settings`) in their config."""
+    if not settings:
+        return state, config
+    raw = to_dict(config)
+    for key, value in settings.items():
+        section, name = key.split(".")
+        raw[section] = {**raw[section], name: value}
+    try:
+        config = build(Config, raw)
+    except ConfigError as exc:
+        changed = ", ".join(f"{key}={value}" for key, value in settings.items())
+        raise CheckpointError(f"run {run_dir} with {changed}: {exc}") from None
+    return {**state, "config": raw}, config
+
+
+def export(run_dir, out, which: str = "best", settings: dict | None = None) -> Path:
+    """Write the pretrained folder ``out`` from run ``run_dir``'s checkpoint ``which``, its config
+    changed by ``settings`` (:func:`parse_settings`); returns the new checkpoint's path. Raises
+    CheckpointError naming the run when it cannot be used."""
     run_dir, out = Path(run_dir), Path(out)
     if out.resolve() == run_dir.resolve():
         raise CheckpointError(f"export {run_dir} into another folder than the run itself")
-    target = _write(run_dir, out, *_run(run_dir, which))
+    state, config, dataset = _run(run_dir, which)
+    target = _write(run_dir, out, *_with_settings(state, config, settings or {}, run_dir), dataset)
     if is_ensemble(out):  # an ensemble exported here before: this model replaces it
         (out / ENSEMBLE_FILE).unlink()
         shutil.rmtree(out / "members", ignore_errors=True)
@@ -80,10 +122,11 @@ def _run(run_dir: Path, which: str) -> tuple[dict, Config, dict]:
     return state, config, run_dataset_config(run_dir, config)
 
 
-def export_ensemble(run_dirs, out, which: str = "best") -> list[Path]:
-    """Write the ensemble folder ``out`` of runs ``run_dirs`` (each's checkpoint ``which``):
-    members first, ``ensemble.yaml`` last; returns the members' checkpoint paths. Raises
-    CheckpointError naming the run that cannot join (another graph or scene, no checkpoint)."""
+def export_ensemble(run_dirs, out, which: str = "best", settings: dict | None = None) -> list[Path]:
+    """Write the ensemble folder ``out`` of runs ``run_dirs`` (each's checkpoint ``which``, each
+    config changed by ``settings``): members first, ``ensemble.yaml`` last; returns the members'
+    checkpoint paths. Raises CheckpointError naming the run that cannot join (another graph or
+    scene, no checkpoint)."""
     run_dirs, out = [Path(r) for r in run_dirs], Path(out)
     if len(run_dirs) < 2:
         raise CheckpointError("an ensemble joins at least two runs")
@@ -91,7 +134,10 @@ def export_ensemble(run_dirs, out, which: str = "best") -> list[Path]:
         if out.resolve() == run_dir.resolve() or out.resolve() in run_dir.resolve().parents:
             raise CheckpointError(f"run {run_dir} lies in {out}: write the ensemble into a new folder (and move it "
                                   "there after)")
-    loaded = [_run(run_dir, which) for run_dir in run_dirs]
+    loaded = []
+    for run_dir in run_dirs:
+        state, config, dataset = _run(run_dir, which)
+        loaded.append((*_with_settings(state, config, settings or {}, run_dir), dataset))
     check_members(run_dirs, [config for _, config, _ in loaded], [dataset for _, _, dataset in loaded])
     names = [f"members/{k}-{config.name}" for k, (_, config, _) in enumerate(loaded)]
     shutil.rmtree(out / "members", ignore_errors=True)  # members of an ensemble exported here before
@@ -113,12 +159,15 @@ def main(argv=None, prog: str = "python -m bsms.pretrained") -> int:
                         help="the trained run folder (several: an ensemble of them)")
     parser.add_argument("out", type=Path, help="the pretrained folder to write, e.g. pretrained/press2d")
     parser.add_argument("--which", default="best", choices=("best", "latest"), help="checkpoint (default best)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                        help=f"change a config key of how the weights answer (repeatable): {', '.join(SETTABLE)}")
     args = parser.parse_args(argv)
     try:
+        settings = parse_settings(args.settings)
         if len(args.runs) == 1:
-            paths = [export(args.runs[0], args.out, args.which)]
+            paths = [export(args.runs[0], args.out, args.which, settings)]
         else:
-            paths = export_ensemble(args.runs, args.out, args.which)
+            paths = export_ensemble(args.runs, args.out, args.which, settings)
     except (CheckpointError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

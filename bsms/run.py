@@ -243,6 +243,9 @@ class Config:
             raise ConfigError("config key 'train.unroll' must be 1 with 'graph.from_rest': every frame is predicted "
                               f"from the rest shape and the drive alone, so unrolled steps see the same inputs as "
                               f"single steps; got {self.train.unroll}")
+        if self.model.mirror_average and not self.train.mirror:
+            raise ConfigError("config key 'model.mirror_average' averages the answers to each frame and to its mirror "
+                              "image: train the network on both images (train.mirror: true)")
 
     @property
     def run_dir(self) -> Path:
@@ -409,7 +412,7 @@ def build_model(config: Config, dim: int, fields: FieldSpec | None = None) -> Le
         hidden_layers=config.model.hidden_layers, max_accumulations=config.train.normalizer_steps,
         core_options=config.model.core_options(dim), fields=fields, penetration=config.graph.penetration,
         clearance=config.graph.clearance, drive=config.graph.drive, elastic=config.graph.elastic,
-        elastic_residual=config.graph.elastic_residual,
+        elastic_residual=config.graph.elastic_residual, mirror_average=config.model.mirror_average,
     )
 
 

@@ -30,6 +30,12 @@ class ModelConfig:
     first_level (bsms_gnn only): the finest level that passes messages; the levels below it only
     encode, pool, unpool (with their skip connection) and decode, so the network's edge work is
     on the coarser levels (0, the default: every level passes, the thesis' BSMS-GNN).
+    mirror_average (Lagrangian data, any core): at inference -- every rollout: validation,
+    evaluation, ``bsms.infer`` -- a frame's answer is the mean of the network's answer and the
+    reflection of its answer to the frame reflected by x -> -x, so the model is exactly
+    mirror-equivariant (a symmetric scene stays symmetric) at the price of the network run twice
+    per frame; the graph is built once. Training's loss is the network's own answer, unchanged
+    (``train.mirror`` gives it both images, and is required).
     """
 
     name: Literal["bsms_gnn", "meshgraphnets", "ms_gnn_grid", "graph_unets"] = "bsms_gnn"
@@ -44,6 +50,7 @@ class ModelConfig:
     pool_ratio: float = 0.5
     layer_norm: bool = True
     first_level: int = 0
+    mirror_average: bool = False
 
     def validate(self, prefix: str) -> None:
         at_least(self, prefix, 1, ("latent", "hidden_layers", "passes", "grid_levels"))

@@ -15,6 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from bsms.augment import reflected
 from bsms.data import LevelGraph, NodeType
 from bsms.fields import FieldSpec
 from bsms.models import native
@@ -81,13 +82,16 @@ class LearnedSimulator(nn.Module):
         max_accumulations: batches after which the normalisers freeze.
         core_options: options of the core beyond these (``transition`` of bsms_gnn, ...).
         fields: the data's field spec (default: Lagrangian of dimension ``dim``).
+        mirror_average: :meth:`velocity_change` (inference) is the mean of the answer and the
+            reflection of the answer to the reflected graph (x -> -x, :func:`bsms.augment.reflected`):
+            exactly mirror-equivariant, the network run twice. Lagrangian data only.
     """
 
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
                  core_options: dict | None = None, fields: FieldSpec | None = None, penetration: bool = False,
                  clearance: bool = False, drive: bool = False, elastic: bool = False,
-                 elastic_residual: bool = False):
+                 elastic_residual: bool = False, mirror_average: bool = False):
         super().__init__()
         if elastic_residual and not elastic:
             raise ValueError("elastic_residual corrects the elastic answer: the model needs elastic=True too")
@@ -96,7 +100,11 @@ class LearnedSimulator(nn.Module):
         spec = FieldSpec.lagrangian(dim) if fields is None else fields
         if spec.dim != dim or (contact and spec.contact_edge_dim is None):
             raise ValueError(f"the field spec ({spec.describe()}) does not fit dim={dim}, contact={contact}")
+        if mirror_average and not spec.is_lagrangian:
+            raise ValueError(f"mirror_average reflects positions and velocities; this data has {spec.describe()}: "
+                             "leave it off")
         self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
+        self.mirror_average = mirror_average
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
         self.penetration, self.clearance, self.drive, self.elastic = penetration, clearance, drive, elastic
         self.elastic_residual = elastic_residual
@@ -257,6 +265,15 @@ class LearnedSimulator(nn.Module):
         the velocity change of Lagrangian data, the spec's outputs of Eulerian data (the name
         predates specs); precision: as in :meth:`forward`."""
         change = self.physical(self(graph, precision=precision), graph)
+        if self.mirror_average:
+            image = reflected(graph)
+            change = 0.5 * (change + self.physical(self(image, precision=precision), image) * self._flip(change))
         return torch.where((graph.node_type == NodeType.FREE)[:, None], change, torch.zeros_like(change))
+
+    def _flip(self, like: Tensor) -> Tensor:
+        """(d,) the reflection x -> -x as a factor per component, of ``like``'s dtype and device."""
+        flip = torch.ones(self.dim, dtype=like.dtype, device=like.device)
+        flip[0] = -1.0
+        return flip
 
     output = velocity_change
