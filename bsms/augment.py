@@ -107,14 +107,10 @@ def rotated(graph, rotation: np.ndarray):
 
 
 def reflected(graph):
-    """A new graph: ``graph`` (a LevelGraph, one frame or a batch) reflected by x -> -x, every
-    vector field of :data:`ROTATED_FIELDS` it holds with its first component negated; the other
-    fields are ``graph``'s own (shared, not copied). The reflection keeps every distance, so the
-    levels, contact edges and transitions built for ``graph`` are the reflected scene's too."""
-    out = copy.copy(graph)
-    for key in ROTATED_FIELDS:
-        if key in graph:
-            value = graph[key].clone()
-            value[:, 0] = -value[:, 0]
-            out[key] = value
-    return out
+    """A new graph: ``graph`` (a LevelGraph, one frame or a batch) reflected by x -> -x, the
+    vector fields of :data:`ROTATED_FIELDS` turned by :func:`rotated` with the reflection; the
+    other fields are ``graph``'s own (shared, not copied). The reflection keeps every distance, so
+    the levels, contact edges and transitions built for ``graph`` are the reflected scene's too."""
+    flip = np.eye(graph.pos.shape[1])
+    flip[0, 0] = -1.0
+    return rotated(copy.copy(graph), flip)

@@ -31,7 +31,7 @@ from pathlib import Path
 import yaml
 
 from bsms.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from bsms.config import ConfigError, build, to_dict
+from bsms.config import ConfigError, apply_overrides, build, to_dict
 from bsms.data import saved_graph_options
 from bsms.ensemble import ENSEMBLE_FILE, check_members, is_ensemble
 from bsms.run import Config, checkpoint_path, find_checkpoint, run_dataset_config
@@ -42,44 +42,35 @@ __all__ = ["KEEP", "SETTABLE", "export", "export_ensemble", "main", "parse_setti
 KEEP = ("format", "config", "dim", "fields", "step", "best_valid", "seconds", "model")
 """The checkpoint entries a pretrained model keeps (inference needs no optimiser state)."""
 
-SETTABLE = {"model.mirror_average": bool}
-"""Config keys an export may change (``--set``), with their type: how trained weights answer at
-inference, never what they are."""
+SETTABLE = ("model.mirror_average",)
+"""Config keys an export may change (``--set``): how trained weights answer at inference, never
+what they are."""
 
 
-def parse_settings(items) -> dict:
-    """``KEY=VALUE`` strings -> {key: value} for keys of :data:`SETTABLE` (values read as YAML).
-    Raises ConfigError naming the item that is not one."""
-    settings = {}
+def parse_settings(items) -> list[str]:
+    """``KEY=VALUE`` strings, checked to name keys of :data:`SETTABLE` (their values are checked
+    as every config override is, when applied). Raises ConfigError naming the item that does not."""
     for item in items:
-        key, sep, text = item.partition("=")
+        key, sep, _ = item.partition("=")
         if not sep or key not in SETTABLE:
             raise ConfigError(f"--set {item!r}: give KEY=VALUE with KEY one of {', '.join(SETTABLE)} (keys that "
                               "change how the weights answer, not what they are)")
-        value = yaml.safe_load(text)
-        if type(value) is not SETTABLE[key]:
-            raise ConfigError(f"--set {item!r}: {key} takes a {SETTABLE[key].__name__}, got {text!r}")
-        settings[key] = value
-    return settings
+    return list(items)
 
 
-def _with_settings(state: dict, config: Config, settings: dict, run_dir: Path) -> tuple[dict, Config]:
-    """``state`` and ``config`` with ``settings`` (:func:`parse_settings`) in their config."""
-    if not settings:
+def _with_settings(state: dict, config: Config, settings: list[str], run_dir: Path) -> tuple[dict, Config]:
+    """``state`` and ``config`` with ``settings`` (:func:`parse_settings`) applied to their config."""
+    if not parse_settings(settings):
         return state, config
-    raw = to_dict(config)
-    for key, value in settings.items():
-        section, name = key.split(".")
-        raw[section] = {**raw[section], name: value}
     try:
+        raw = apply_overrides(to_dict(config), settings)
         config = build(Config, raw)
     except ConfigError as exc:
-        changed = ", ".join(f"{key}={value}" for key, value in settings.items())
-        raise CheckpointError(f"run {run_dir} with {changed}: {exc}") from None
+        raise CheckpointError(f"run {run_dir} with {', '.join(settings)}: {exc}") from None
     return {**state, "config": raw}, config
 
 
-def export(run_dir, out, which: str = "best", settings: dict | None = None) -> Path:
+def export(run_dir, out, which: str = "best", settings: list[str] = ()) -> Path:
     """Write the pretrained folder ``out`` from run ``run_dir``'s checkpoint ``which``, its config
     changed by ``settings`` (:func:`parse_settings`); returns the new checkpoint's path. Raises
     CheckpointError naming the run when it cannot be used."""
@@ -87,7 +78,7 @@ def export(run_dir, out, which: str = "best", settings: dict | None = None) -> P
     if out.resolve() == run_dir.resolve():
         raise CheckpointError(f"export {run_dir} into another folder than the run itself")
     state, config, dataset = _run(run_dir, which)
-    target = _write(run_dir, out, *_with_settings(state, config, settings or {}, run_dir), dataset)
+    target = _write(run_dir, out, *_with_settings(state, config, list(settings), run_dir), dataset)
     if is_ensemble(out):  # an ensemble exported here before: this model replaces it
         (out / ENSEMBLE_FILE).unlink()
         shutil.rmtree(out / "members", ignore_errors=True)
@@ -122,7 +113,7 @@ def _run(run_dir: Path, which: str) -> tuple[dict, Config, dict]:
     return state, config, run_dataset_config(run_dir, config)
 
 
-def export_ensemble(run_dirs, out, which: str = "best", settings: dict | None = None) -> list[Path]:
+def export_ensemble(run_dirs, out, which: str = "best", settings: list[str] = ()) -> list[Path]:
     """Write the ensemble folder ``out`` of runs ``run_dirs`` (each's checkpoint ``which``, each
     config changed by ``settings``): members first, ``ensemble.yaml`` last; returns the members'
     checkpoint paths. Raises CheckpointError naming the run that cannot join (another graph or
@@ -137,7 +128,7 @@ def export_ensemble(run_dirs, out, which: str = "best", settings: dict | None = 
     loaded = []
     for run_dir in run_dirs:
         state, config, dataset = _run(run_dir, which)
-        loaded.append((*_with_settings(state, config, settings or {}, run_dir), dataset))
+        loaded.append((*_with_settings(state, config, list(settings), run_dir), dataset))
     check_members(run_dirs, [config for _, config, _ in loaded], [dataset for _, _, dataset in loaded])
     names = [f"members/{k}-{config.name}" for k, (_, config, _) in enumerate(loaded)]
     shutil.rmtree(out / "members", ignore_errors=True)  # members of an ensemble exported here before

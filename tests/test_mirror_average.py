@@ -109,13 +109,16 @@ def test_an_export_can_turn_the_mirror_average_on(tiny_dataset, tmp_path, capsys
     torch.testing.assert_close(model.state_dict(), load_model(config.run_dir, "latest")[0].state_dict(), rtol=0, atol=0)
     for item, message in (("model.latent=3", "give KEY=VALUE with KEY one of model.mirror_average"),
                           ("model.mirror_average", "give KEY=VALUE with KEY one of model.mirror_average"),
-                          ("model.mirror_average=1", "model.mirror_average takes a bool, got '1'")):
+                          ("model.mirror_average=1", "config key 'model.mirror_average' must be true or false, got 1"),
+                          ("model.mirror_average=[", "the value is not valid YAML")):
         assert export_main([str(config.run_dir), str(tmp_path / "bad"), "--set", item]) == 2
         assert message in capsys.readouterr().err
-    assert parse_settings(["model.mirror_average=false"]) == {"model.mirror_average": False}
+    assert parse_settings(["model.mirror_average=false"]) == ["model.mirror_average=false"]
+    with pytest.raises(ConfigError, match=r"^--set 'graph.levels=2': give KEY=VALUE with KEY one of "):
+        export(config.run_dir, tmp_path / "refused", "latest", ["graph.levels=2"])
     unmirrored = load_config(tiny_run_config(tiny_dataset, tmp_path / "runs", name="plain", graph=GRAPH,
                                              noise={"position": 0.0, "velocity": 0.0}, model={"latent": 16},
                                              train={"steps": 2, "valid_every": 2, "checkpoint_every": 2}))
     Trainer(unmirrored, dataset_folder=prepare_dataset(unmirrored, progress=False)).fit()
-    with pytest.raises(CheckpointError, match=r"model.mirror_average=True: config key 'model.mirror_average' averages"):
-        export(unmirrored.run_dir, tmp_path / "refused", "latest", {"model.mirror_average": True})
+    with pytest.raises(CheckpointError, match=r"model.mirror_average=true: config key 'model.mirror_average' averages"):
+        export(unmirrored.run_dir, tmp_path / "refused", "latest", ["model.mirror_average=true"])
