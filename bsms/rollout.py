@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from bsms.data import Scenario
 from bsms.level_graph import level_graph
+from bsms.memory import keep_freed_memory
 from bsms.models.blocks import compiled_message_passing
 from bsms.models.precision import network_dtype
 from bsms.motion import SKILL_KEYS
@@ -316,6 +317,7 @@ def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_
     """
     device = torch.device(device)
     network_dtype(precision, device)  # a bad precision fails before any work
+    keep_freed_memory()  # each call's arrays reused, not paged in anew (bsms.memory)
     model = model.to(device).eval()
     n = len(scenarios)
     steps = [steps] * n if np.ndim(steps) == 0 else list(steps)

@@ -20,6 +20,7 @@ from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
 from bsms.data import NodeType
 from bsms.fields import eulerian_state, spec_of
+from bsms.memory import keep_freed_memory
 from bsms.motion import skill
 from bsms.rollout import body_size, eulerian_metrics, rollout_metrics
 from datagen import simulate
@@ -150,6 +151,7 @@ def run_solver(trajectory, setting: str, frames: int, bound: float, threads: int
     ``stability_limit`` reuses (:func:`stability_limit`). Every result names its ``setting``;
     a run also gives its time step (``dt``, ``dt_factor``: over the data's, ``substeps``).
     """
+    keep_freed_memory()  # the footing of the learned rollouts it is timed against (bsms.memory)
     if setting == "stability_limit":
         metrics = stability_limit(trajectory, frames, bound, threads, done)
     else:

@@ -25,13 +25,18 @@ GRAPH = {"levels": 3, "constants": ["log_E"], "from_rest": True, "penetration": 
          "elastic": True}
 
 
-@pytest.fixture(scope="module")
-def run(tiny_dataset, tmp_path_factory):
+# the general network (two hidden layers, LayerNorm: the two images in two passes) and a lean one
+# (the press recipe's: both images in one pass of the fused blocks, BSMSGNN.runs_groups)
+NETWORKS = {"general": {}, "lean": {"hidden_layers": 1, "layer_norm": False, "first_level": 1}}
+
+
+@pytest.fixture(scope="module", params=list(NETWORKS))
+def run(request, tiny_dataset, tmp_path_factory):
     """A tiny from-rest run trained with train.mirror (a few steps: the weights are arbitrary, not
     equivariant), its config asking for the mirror average."""
+    model = {"name": "bsms_gnn", "latent": 16, "mirror_average": True, **NETWORKS[request.param]}
     config = load_config(tiny_run_config(tiny_dataset, tmp_path_factory.mktemp("runs"), graph=GRAPH,
-                                         noise={"position": 0.0, "velocity": 0.0},
-                                         model={"name": "bsms_gnn", "latent": 16, "mirror_average": True},
+                                         noise={"position": 0.0, "velocity": 0.0}, model=model,
                                          train={"steps": 6, "valid_every": 6, "checkpoint_every": 6, "mirror": True}))
     Trainer(config, dataset_folder=prepare_dataset(config, progress=False)).fit()
     return config.run_dir
@@ -65,9 +70,32 @@ def test_the_mirror_average_is_exactly_equivariant_and_the_network_alone_is_not(
     image = reflected(graph)
     own, mirror_answer = plain.velocity_change(graph), plain.velocity_change(image)
     assert (mirror_answer - own * flip).abs().max() > 1e-3 * own.abs().max()  # the network alone: not equivariant
-    averaged = model.velocity_change(graph)
-    assert torch.equal(averaged, 0.5 * (own + mirror_answer * flip))
+    averaged, expected = model.velocity_change(graph), 0.5 * (own + mirror_answer * flip)
+    if model.core.runs_groups():  # both images in one pass: the products over the paired rows round apart
+        torch.testing.assert_close(averaged, expected, rtol=0, atol=1e-6 * float(expected.abs().max()))
+    else:
+        assert torch.equal(averaged, expected)
     assert torch.equal(model.velocity_change(image), averaged * flip)  # bit for bit: the sum commutes
+
+
+def test_a_lean_network_runs_both_images_in_one_pass_with_the_answers_of_two(run, monkeypatch):
+    """The lean network's blocks are fused, so the frame and its image go through the core once,
+    side by side (groups=2); its answers are those of two passes to float32 round-off. The general
+    network runs twice."""
+    model, _, graph = _graph(run)
+    lean = model.core.runs_groups()
+    assert lean == (model.core.first_level == 1)
+    groups = []
+    forward = type(model.core).forward
+    monkeypatch.setattr(type(model.core), "forward",
+                        lambda core, *args, **kwargs: groups.append(kwargs.get("groups", 1)) or forward(core, *args,
+                                                                                                          **kwargs))
+    averaged = model.velocity_change(graph)
+    assert groups == ([2] if lean else [1, 1])
+    monkeypatch.setattr(model, "_paired", lambda *args: None)
+    twice = model.velocity_change(graph)
+    torch.testing.assert_close(averaged, twice, rtol=0, atol=1e-6 * float(twice.abs().max()))
+    assert float(twice.abs().max()) > 0
 
 
 def test_a_rollout_of_the_mirrored_trajectory_is_the_mirrored_rollout(run, tmp_path):

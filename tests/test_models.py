@@ -180,9 +180,10 @@ def test_normalizer_state_travels_with_the_state_dict():
 
 
 # ----------------------------------------------------------------------------- split message passing
-def concatenated_block(block, v, edge_sets):
+def concatenated_block(block, v, edge_sets, groups=1):
     """A block in its textbook form (thesis eq. 4.2): each edge MLP on the concatenation
-    [e_ij, v_i, v_j], the node MLP on [v_i, sum_j e^1_ij, ...]."""
+    [e_ij, v_i, v_j], the node MLP on [v_i, sum_j e^1_ij, ...] (one copy of the graph)."""
+    assert groups == 1
     aggregated, updated = [], []
     for edge_mlp, (index, features) in zip(block.edge_mlps, edge_sets, strict=True):
         senders, receivers = index

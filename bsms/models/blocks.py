@@ -13,6 +13,12 @@ split the same way. An edge MLP that ends in a Linear (no LayerNorm after it) ha
 summed per receiver before that layer: sum_j (W h_ij + b) = W (sum_j h_ij) + deg_i b, one
 product per node instead of one per edge. The parameters and state_dict keys are those of the
 concatenated form.
+
+At inference a lean block (every MLP Linear, ReLU, Linear, as the press recipe's) runs
+:func:`fused_pass`: all node products of its edge MLPs and the node MLP's own part in one matrix
+product, each edge set's messages summed with their edge counts by the compiled loop, and each
+edge MLP's last Linear folded into the node MLP's first: W_k (W sum_j h_ij + deg_i b) =
+[W_k W | W_k b] [sum_j h_ij; deg_i], one product per edge set instead of two.
 """
 
 from __future__ import annotations
@@ -81,6 +87,51 @@ def compiled_message_passing(model: nn.Module, dtype: torch.dtype) -> bool:
     blocks = [m for m in model.modules() if isinstance(m, MessagePassingBlock)]
     return dtype == torch.float32 and bool(blocks) and native.library() is not None \
         and all(_compilable(edge_mlp) for block in blocks for edge_mlp in block.edge_mlps)
+
+
+def _lean(layers: nn.Sequential) -> bool:
+    """Whether an MLP is Linear, ReLU, Linear (one hidden layer, no LayerNorm)."""
+    return _compilable(layers)
+
+
+def fusable(block: MessagePassingBlock) -> bool:
+    """Whether ``block`` is lean (every MLP Linear, ReLU, Linear) and the compiled library is
+    built: at inference in float32 on a CPU it then runs :func:`fused_pass`."""
+    return _lean(block.node_mlp) and all(_lean(edge_mlp) for edge_mlp in block.edge_mlps) \
+        and native.library() is not None
+
+
+def fused_pass(block: MessagePassingBlock, v: Tensor, edge_sets: list[EdgeSet], groups: int = 1) -> Tensor | None:
+    """``block(v, edge_sets)`` for a lean block at inference in float32 on a CPU, fused (module
+    docstring); None where it does not apply (gradients, autocast, other MLPs or dtypes, no
+    compiled library): the block then runs its general path. ``groups`` G: v holds G copies of
+    the graph's latents, node i's copy g in row i G + g, and each edge set's features the G
+    copies' side by side (E, G F): :func:`bsms.models.native.edge_sums`."""
+    if torch.is_grad_enabled() or v.device.type != "cpu" or v.dtype != torch.float32 \
+            or torch.is_autocast_enabled("cpu") or not fusable(block):
+        return None
+    h, node_first, node_last = v.shape[1], block.node_mlp[0], block.node_mlp[2]
+    pairs = enumerate(zip(block.edge_mlps, edge_sets, strict=True))
+    active = [(k, edge_mlp, edge_set) for k, (edge_mlp, edge_set) in pairs if edge_set.index.shape[1]]
+    weights, biases = [], []
+    for _, edge_mlp, (_, features) in active:
+        first, f = edge_mlp[0], features.shape[1] // groups
+        weights += [first.weight[:, f: f + h], first.weight[:, f + h:]]
+        biases += [first.bias, torch.zeros_like(first.bias)]
+    products = torch.addmm(torch.cat([*biases, node_first.bias]), v,
+                           torch.cat([*weights, node_first.weight[:, :h]]).T)
+    hidden, start = products[:, products.shape[1] - node_first.out_features:], 0
+    for k, edge_mlp, (index, features) in active:
+        first, last, f = edge_mlp[0], edge_mlp[2], features.shape[1] // groups
+        width = 2 * first.out_features
+        sums = native.edge_sums(products[:, start: start + width], features, first.weight[:, :f], index, counts=True,
+                                groups=groups)
+        if sums is None:
+            return None
+        start += width
+        folded = node_first.weight[:, (k + 1) * h: (k + 2) * h] @ torch.cat([last.weight, last.bias[:, None]], 1)
+        hidden = torch.addmm(hidden, sums, folded.T)
+    return torch.addmm(node_last.bias, hidden.relu_(), node_last.weight.T).add_(v)
 
 
 def _compiled_sums(edge_mlp: nn.Sequential, features: Tensor, v: Tensor, index: Tensor) -> Tensor | None:
@@ -167,10 +218,18 @@ class MessagePassingBlock(nn.Module):
         )
         self.node_mlp = mlp(latent * (1 + len(edge_feature_dims)), latent, hidden, hidden_layers, layer_norm)
 
-    def forward(self, v: Tensor, edge_sets: list[EdgeSet]) -> Tensor:
-        """v: (N, H), one EdgeSet per edge MLP -> (N, H)."""
+    def forward(self, v: Tensor, edge_sets: list[EdgeSet], groups: int = 1) -> Tensor:
+        """v: (N, H), one EdgeSet per edge MLP -> (N, H). ``groups`` > 1: v holds that many copies
+        of the graph's latents, as :func:`fused_pass` takes them (the only path that runs them)."""
         if len(edge_sets) != len(self.edge_mlps):
             raise ValueError(f"block expects {len(self.edge_mlps)} edge sets, got {len(edge_sets)}")
+        fused = fused_pass(self, v, edge_sets, groups)
+        if fused is not None:
+            return fused
+        if groups != 1:
+            raise ValueError(f"a block passes messages for {groups} copies of a graph at once only on its fused path: "
+                             "a lean block (model.layer_norm: false, model.hidden_layers: 1) at inference in float32 "
+                             "on a CPU, with the compiled library built")
         aggregated = []
         for edge_mlp, (index, features) in zip(self.edge_mlps, edge_sets, strict=True):
             if _skippable(index):

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
-from bsms.models.blocks import MessagePassingBlock
+from bsms.models.blocks import MessagePassingBlock, fusable
 from bsms.models.inputs import Context, Level
 from bsms.models.mlp import mlp
 from bsms.models.transition_variants import TRANSITIONS, apply_transition, make_transitions
@@ -76,21 +76,39 @@ class BSMSGNN(nn.Module):
         self.transitions = make_transitions(transition, n_levels, latent, hidden, hidden_layers)
         self.needs_context = self.transitions.needs_context
 
-    def forward(self, node_features: Tensor, levels: list[Level], context: Context | None = None) -> Tensor:
-        """node_features: (N, node_in); levels[0] is the mesh itself -> (N, node_out)."""
+    def runs_groups(self) -> bool:
+        """Whether :meth:`forward` takes several copies of a graph at once (``groups``): every block
+        fused (:func:`bsms.models.blocks.fusable`) and a transition that reads no positions. The
+        copies then cost one pass of the network over wider arrays, not one pass each."""
+        blocks = [*self.down_blocks, self.bottom_block, *self.up_blocks]
+        return not self.needs_context and all(fusable(block) for block in blocks)
+
+    def forward(self, node_features: Tensor, levels: list[Level], context: Context | None = None,
+                groups: int = 1) -> Tensor:
+        """node_features: (N, node_in); levels[0] is the mesh itself -> (N, node_out).
+
+        groups G > 1 (inference, :meth:`runs_groups`): G copies of the graph at once (a frame and
+        its mirror image), node i's copy g in row i G + g of node_features and of the output, and
+        each edge set's features the copies' side by side, (E, G F)."""
+        if groups > 1 and not self.runs_groups():
+            raise ValueError(f"this network runs {groups} copies of a graph at once only with every block lean "
+                             "(model.layer_norm: false, model.hidden_layers: 1), the compiled library built and a "
+                             "transition that reads no positions")
         depth = min(self.n_levels, len(levels))
         v = self.encoder(node_features).to(node_features.dtype)  # the residual stream: float32 under autocast
+        latent = v.shape[1]
+        width = latent * groups  # a node's row over all copies: transitions move whole rows
         skips = []
         first = self.first_level
         for l in range(depth - 1):
             if l >= first:
-                v = self.down_blocks[l - first](v, levels[l].edge_sets)
+                v = self.down_blocks[l - first](v, levels[l].edge_sets, groups)
             skips.append(v)
-            v = self.transitions.down(v, levels, l, context)
-        v = self.bottom_block(v, levels[depth - 1].edge_sets)
+            v = self.transitions.down(v.reshape(-1, width), levels, l, context).reshape(-1, latent)
+        v = self.bottom_block(v, levels[depth - 1].edge_sets, groups)
         for l in reversed(range(depth - 1)):
-            v = self.transitions.up(v, levels, l, context)
+            v = self.transitions.up(v.reshape(-1, width), levels, l, context).reshape(-1, latent)
             if l >= first:
-                v = self.up_blocks[l - first](v, levels[l].edge_sets)
+                v = self.up_blocks[l - first](v, levels[l].edge_sets, groups)
             v = v + skips[l]
         return self.decoder(v)

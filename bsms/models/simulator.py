@@ -150,7 +150,10 @@ class LearnedSimulator(nn.Module):
             parts.append(graph.elastic)
         return torch.cat(parts, dim=-1)
 
-    def _level(self, graph: LevelGraph, l: int, accumulate: bool) -> Level:
+    def _level(self, graph: LevelGraph, l: int, accumulate: bool, reflect: bool = False) -> Level:
+        """Level ``l`` of ``graph`` as the core reads it; ``reflect`` (inference, Lagrangian data
+        with material and world positions of one dimension): each edge set's features followed by
+        those of the mirror image, (E, 2 F), as :meth:`_paired` runs them."""
         nodes, edge_index = graph[f"nodes_{l}"], graph[f"edge_index_{l}"]
         if l < getattr(self.core, "first_level", 0) and l + 1 < self.n_levels:  # a level that passes no messages
             return Level([], graph.transition("down", l), graph.transition("up", l), nodes)
@@ -159,7 +162,11 @@ class LearnedSimulator(nn.Module):
         if spec.is_lagrangian and spec.material_dim == self.dim:
             rest_and_pos = torch.cat([graph.rest_pos, graph.pos], dim=-1).index_select(0, nodes)
             world = rest_and_pos[:, self.dim:]
-            edge_sets = [EdgeSet(edge_index, self._edge_inputs(normalizers[0], rest_and_pos, edge_index, accumulate))]
+            edge_sets = [EdgeSet(edge_index, self._edge_inputs(normalizers[0], rest_and_pos, edge_index, accumulate,
+                                                               reflect))]
+        elif reflect:
+            raise ValueError("reflected edge inputs need Lagrangian data with material and world positions of one "
+                             f"dimension; this data has {spec.describe()}")
         else:  # Eulerian: material offsets only; cloth: material and world offsets of different dimensions
             parts = [_offsets(graph.rest_pos.index_select(0, nodes), edge_index, spec.material_dim)]
             world = graph.pos.index_select(0, nodes)
@@ -171,23 +178,29 @@ class LearnedSimulator(nn.Module):
             edge_sets = [EdgeSet(edge_index, normalizers[0](raw))]
         if self.contact:
             contact_index = graph[f"contact_index_{l}"]
-            contact_inputs = self._edge_inputs(normalizers[1], world, contact_index, accumulate)
+            contact_inputs = self._edge_inputs(normalizers[1], world, contact_index, accumulate, reflect)
             edge_sets.append(EdgeSet(contact_index, contact_inputs))
         if l + 1 == self.n_levels:
             return Level(edge_sets, None, None, nodes)
         return Level(edge_sets, graph.transition("down", l), graph.transition("up", l), nodes)
 
-    def _edge_inputs(self, normalizer: Normalizer, points: Tensor, index: Tensor, accumulate: bool) -> Tensor:
+    def _edge_inputs(self, normalizer: Normalizer, points: Tensor, index: Tensor, accumulate: bool,
+                     reflect: bool = False) -> Tensor:
         """The normalised offsets and lengths of ``index``'s edges between ``points`` (N, k d): at
-        inference in one compiled pass where it runs (:func:`bsms.models.native.edge_offsets`)."""
+        inference in one compiled pass where it runs (:func:`bsms.models.native.edge_offsets`).
+        ``reflect``: (E, 2 k (d + 1)), followed by those of the mirror image (x -> -x)."""
         if not accumulate and not torch.is_grad_enabled():
-            inputs = native.edge_offsets(points, index, self.dim, normalizer.mean, normalizer.std)
+            inputs = native.edge_offsets(points, index, self.dim, normalizer.mean, normalizer.std, reflect)
             if inputs is not None:
                 return inputs
         raw = _offsets(points, index, self.dim)
         if accumulate:
             normalizer.accumulate(raw)
-        return normalizer(raw)
+        if not reflect:
+            return normalizer(raw)
+        flip = torch.ones(raw.shape[1], dtype=raw.dtype, device=raw.device)
+        flip[:: self.dim + 1] = -1.0  # the first component of each offset; lengths stay
+        return torch.cat([normalizer(raw), normalizer(raw * flip)], dim=1)
 
     def _context(self, graph: LevelGraph, accumulate: bool) -> Context:
         counts = graph["n_nodes_0"]
@@ -264,11 +277,35 @@ class LearnedSimulator(nn.Module):
         """(N, node_out) predicted outputs in physical units (zero on non-free nodes), float32:
         the velocity change of Lagrangian data, the spec's outputs of Eulerian data (the name
         predates specs); precision: as in :meth:`forward`."""
-        change = self.physical(self(graph, precision=precision), graph)
-        if self.mirror_average:
+        if not self.mirror_average:
+            change = self.physical(self(graph, precision=precision), graph)
+        else:
             image = reflected(graph)
-            change = 0.5 * (change + self.physical(self(image, precision=precision), image) * self._flip(change))
+            paired = self._paired(graph, image, precision)
+            ours, theirs = paired if paired is not None else (self(graph, precision=precision),
+                                                              self(image, precision=precision))
+            change = self.physical(ours, graph)
+            change = 0.5 * (change + self.physical(theirs, image) * self._flip(change))
         return torch.where((graph.node_type == NodeType.FREE)[:, None], change, torch.zeros_like(change))
+
+    def _paired(self, graph: LevelGraph, image: LevelGraph, precision: str) -> tuple[Tensor, Tensor] | None:
+        """:meth:`forward` of ``graph`` and of its mirror ``image`` in one pass of the core, each node's
+        two copies side by side (:meth:`bsms.models.bsms_gnn.BSMSGNN.runs_groups`: the copies share
+        the edges, transitions and every Python step); None where the core cannot run them so (the
+        caller then runs it twice). The same outputs as two passes to float32 round-off."""
+        runs_groups = getattr(self.core, "runs_groups", None)
+        if runs_groups is None or not runs_groups() or graph.pos.device.type != "cpu" \
+                or self.spec.material_dim != self.dim \
+                or network_dtype(precision, graph.pos.device, self.latent) != torch.float32:
+            return None
+        if graph.n_levels < self.n_levels:
+            raise ValueError(f"the graph has {graph.n_levels} levels but the model needs {self.n_levels}")
+        raw = torch.stack([self.node_features(graph), self.node_features(image)], 1)
+        inputs = self.node_normalizer(raw.flatten(0, 1))
+        # the image's edge inputs are the graph's with every offset's first component negated: made with them
+        levels = [self._level(graph, l, False, reflect=True) for l in range(self.n_levels)]
+        out = self.core(inputs, levels, None, groups=2)
+        return out[0::2], out[1::2]
 
     def _flip(self, like: Tensor) -> Tensor:
         """(d,) the reflection x -> -x as a factor per component, of ``like``'s dtype and device."""
