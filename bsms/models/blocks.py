@@ -75,7 +75,8 @@ def edge_first_layer(linear: nn.Linear, features: Tensor, v: Tensor, index: Tens
 
 
 def _compilable(edge_mlp: nn.Sequential) -> bool:
-    """Whether an edge MLP's messages can be summed by the compiled loop: Linear, ReLU, Linear."""
+    """Whether an MLP is Linear, ReLU, Linear (one hidden layer, no LayerNorm): an edge MLP whose
+    messages the compiled loop sums, and what every MLP of a fused block is."""
     return len(edge_mlp) == 3 and isinstance(edge_mlp[1], nn.ReLU) and isinstance(edge_mlp[0], nn.Linear) \
         and isinstance(edge_mlp[2], nn.Linear)
 
@@ -89,15 +90,10 @@ def compiled_message_passing(model: nn.Module, dtype: torch.dtype) -> bool:
         and all(_compilable(edge_mlp) for block in blocks for edge_mlp in block.edge_mlps)
 
 
-def _lean(layers: nn.Sequential) -> bool:
-    """Whether an MLP is Linear, ReLU, Linear (one hidden layer, no LayerNorm)."""
-    return _compilable(layers)
-
-
 def fusable(block: MessagePassingBlock) -> bool:
     """Whether ``block`` is lean (every MLP Linear, ReLU, Linear) and the compiled library is
     built: at inference in float32 on a CPU it then runs :func:`fused_pass`."""
-    return _lean(block.node_mlp) and all(_lean(edge_mlp) for edge_mlp in block.edge_mlps) \
+    return _compilable(block.node_mlp) and all(_compilable(edge_mlp) for edge_mlp in block.edge_mlps) \
         and native.library() is not None
 
 
