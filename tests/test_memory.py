@@ -7,8 +7,6 @@ import platform
 import subprocess
 import sys
 
-import pytest
-
 from bsms import memory
 
 # Twelve rounds of a loop that allocates arrays of 40, 24, 8, 3 and 1 MiB (the largest above glibc's
@@ -36,16 +34,17 @@ def probe(env: dict) -> tuple[str, int]:
     return out[0], int(out[1])
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc",
-                    reason="mallopt is glibc's")
 def test_kept_memory_is_reused_without_page_faults():
     """Without it most of the pages fault in anew every round (59% measured); with it the freed
-    blocks are reused: 3% of the pages fault (one block once)."""
+    blocks are reused: 3% of the pages fault (one block once). Where malloc is not glibc's it
+    does nothing and says so."""
     kept, kept_faults = probe({})
     left, left_faults = probe({"BSMS_KEEP_MEMORY": "0"})
-    assert (kept, left) == ("True", "False")
-    assert left_faults >= 0.5 * PAGES, (left_faults, PAGES)
-    assert kept_faults <= 0.1 * PAGES, (kept_faults, PAGES)
+    glibc = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
+    assert (kept, left) == (str(glibc), "False")
+    if glibc:
+        assert left_faults >= 0.5 * PAGES, (left_faults, PAGES)
+        assert kept_faults <= 0.1 * PAGES, (kept_faults, PAGES)
 
 
 def test_opting_out_changes_nothing(monkeypatch):

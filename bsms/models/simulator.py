@@ -84,7 +84,8 @@ class LearnedSimulator(nn.Module):
         fields: the data's field spec (default: Lagrangian of dimension ``dim``).
         mirror_average: :meth:`velocity_change` (inference) is the mean of the answer and the
             reflection of the answer to the reflected graph (x -> -x, :func:`bsms.augment.reflected`):
-            exactly mirror-equivariant, the network run twice. Lagrangian data only.
+            exactly mirror-equivariant, the network run on both images (in one pass where the core
+            can: :meth:`_paired`). Lagrangian data only.
     """
 
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
