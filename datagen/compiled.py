@@ -60,7 +60,8 @@ def build(source: Path, what: str, fallback: str, depends: tuple[Path, ...] = ()
     """The library of ``source``, compiled into :func:`cache_dir` on first use, or None where it
     cannot be (warning once per call site's cache: ``what`` names the compiled code, ``fallback``
     says what runs instead, e.g. "it runs in torch, several times slower"). depends: the files
-    ``source`` includes, which take part in the cache key too."""
+    ``source`` includes, which take part in the cache key too. A source or depends file that
+    cannot be read (an install without it) warns the same way and returns None."""
     if os.environ.get("BSMS_NATIVE", "1") == "0":
         return None
     compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
@@ -68,7 +69,14 @@ def build(source: Path, what: str, fallback: str, depends: tuple[Path, ...] = ()
         warnings.warn(f"no C compiler (cc) found: {fallback}; install gcc, or set BSMS_NATIVE=0 to silence this",
                       RuntimeWarning, stacklevel=3)
         return None
-    texts = [source.read_text(), *(p.read_text() for p in depends)]
+    texts = []
+    for file in (source, *depends):
+        try:
+            texts.append(file.read_text())
+        except (OSError, UnicodeDecodeError) as error:  # e.g. an install that left a header out
+            reason = error.strerror if isinstance(error, OSError) and error.strerror else str(error)
+            _warn(what, f"cannot read {file}: {reason}", fallback)
+            return None
     key = hashlib.sha256("\n".join([*texts, compiler, " ".join(FLAGS), platform.machine(),
                                     _cpu_model()]).encode()).hexdigest()[:16]
     path = cache_dir() / f"{source.stem}-{key}.so"
@@ -77,6 +85,11 @@ def build(source: Path, what: str, fallback: str, depends: tuple[Path, ...] = ()
             _compile(compiler, source, path)
         return ctypes.CDLL(str(path))
     except OSError as error:
-        warnings.warn(f"could not build the {what} ({error}); {fallback}. Set BSMS_NATIVE=0 to silence this",
-                      RuntimeWarning, stacklevel=3)
+        _warn(what, str(error), fallback)
         return None
+
+
+def _warn(what: str, reason: str, fallback: str) -> None:
+    # stacklevel 4 (this function, build, the function that asked for the library): where it was asked for
+    warnings.warn(f"could not build the {what} ({reason}); {fallback}. Set BSMS_NATIVE=0 to silence this",
+                  RuntimeWarning, stacklevel=4)

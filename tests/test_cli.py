@@ -1,14 +1,18 @@
 """The ``bsms`` command: its subcommands are the entry points beside them, and it works from any
 folder after a plain (not editable) ``pip install .``."""
 
+import json
 import os
+import shutil
 import subprocess
 import sys
+import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import yaml
-from conftest import tiny_run_config
+from conftest import TINY_DATASET, tiny_run_config
 
 from bsms import cli
 
@@ -52,53 +56,104 @@ def test_bsms_train_is_python_train_py(tiny_dataset, tmp_path, capsys):
     assert err == "error: config key 'train.steps' must be >= 1, got 0\n"
 
 
+# What a build of the package reads: pyproject.toml, the readme it names, the packages it finds.
+BUILD_INPUTS = ("pyproject.toml", "README.md", "bsms", "datagen")
+PACKAGES = ("bsms", "datagen")
+
+
+@dataclass
+class Installed:
+    wheel: Path
+    python: Path  # the fresh environment's interpreter
+    site: Path  # its site-packages, where the wheel went
+    env: dict
+
+    def bsms(self, cwd, *words, cache=None, timeout=300):
+        """The installed ``bsms`` command, run in ``cwd`` (compiled libraries in ``cache``, if given)."""
+        env = self.env if cache is None else {**self.env, "BSMS_CACHE": str(cache)}
+        return subprocess.run([str(self.python.parent / "bsms"), *words], cwd=cwd, env=env, capture_output=True,
+                              text=True, timeout=timeout)
+
+
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory):
-    """The package installed as a user would get it from ``pip install .`` (a wheel, not a link to
-    this tree) into a folder of its own; the environment's other packages serve its dependencies."""
-    target = tmp_path_factory.mktemp("site")
-    build = tmp_path_factory.mktemp("build")
-    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                    "--target", str(target), str(ROOT)], check=True, capture_output=True,
-                   env={**os.environ, "TMPDIR": str(build)}, timeout=600)
-    env = {**os.environ, "PYTHONPATH": str(target), "OMP_NUM_THREADS": "1"}
-    return target, env
+    """The package as a user gets it from ``pip install .``: a wheel built from this tree (from a
+    copy of what the build reads, so that nothing in the tree changes and no build/ folder of an
+    earlier build adds its files), installed into a fresh virtual environment. The environment
+    gets its dependencies from this one's site-packages, as plain path lines of a .pth file: the
+    .pth files there (an editable install's finder of this tree) stay inactive."""
+    source, wheels, fresh = (tmp_path_factory.mktemp(name) for name in ("source", "wheel", "fresh"))
+    for name in BUILD_INPUTS:
+        if (ROOT / name).is_dir():
+            shutil.copytree(ROOT / name, source / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy2(ROOT / name, source / name)
+    run = dict(check=True, capture_output=True, text=True, timeout=600)
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation", "-w",
+                    str(wheels), str(source)], **run)
+    wheel, = wheels.glob("bsms-*.whl")
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(fresh)], **run)
+    python = fresh / "bin" / "python"
+    subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", "--no-deps",
+                    str(wheel)], **run)
+    site = Path(subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
+                               **run).stdout.strip())
+    ours = [p for p in sys.path if Path(p).name in ("site-packages", "dist-packages") and Path(p).is_dir()]
+    (site / "dependencies.pth").write_text("".join(f"{p}\n" for p in ours))
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+    env.update(OMP_NUM_THREADS="1", BSMS_CACHE=str(tmp_path_factory.mktemp("cache")))
+    return Installed(wheel, python, site, env)
 
 
-def _bsms(installed, cwd, *words, timeout=300):
-    target, env = installed
-    return subprocess.run([str(target / "bin" / "bsms"), *words], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=timeout)
+@pytest.mark.slow
+def test_the_wheel_holds_every_file_of_every_csrc_folder(installed):
+    """The C sources and the headers they include are compiled on first use: all must ship."""
+    with zipfile.ZipFile(installed.wheel) as wheel:
+        shipped = set(wheel.namelist())
+    needed = [file.relative_to(ROOT).as_posix() for package in PACKAGES for folder in (ROOT / package).rglob("csrc")
+              for file in folder.rglob("*") if file.is_file() and "__pycache__" not in file.parts]
+    assert len(needed) >= 6  # datagen/mpm/csrc (sources and headers), bsms/graph/csrc, bsms/models/csrc
+    missing = [name for name in needed if name not in shipped]
+    assert not missing, f"not in the wheel: {missing}"
 
 
 @pytest.mark.slow
 def test_the_installed_command_works_from_any_folder(installed, tmp_path):
-    target, env = installed
-    where = subprocess.run([sys.executable, "-c", "import bsms, datagen; print(bsms.__file__, datagen.__file__)"],
-                           cwd=tmp_path, env=env, capture_output=True, text=True, check=True).stdout.split()
-    assert all(Path(p).is_relative_to(target) for p in where), f"not the installed copy: {where}"
-    for source in ("datagen/mpm/csrc/umls.c", "bsms/graph/csrc/graph.c"):  # compiled on first use
-        assert (target / source).is_file(), f"{source} is not in the wheel"
-    listing = _bsms(installed, tmp_path, "--help")
+    where = subprocess.run([str(installed.python), "-c", "import bsms, datagen; print(bsms.__file__, datagen.__file__)"],
+                           cwd=tmp_path, env=installed.env, capture_output=True, text=True, check=True).stdout.split()
+    assert all(Path(p).is_relative_to(installed.site) for p in where), f"not the installed copy: {where}"
+    listing = installed.bsms(tmp_path, "--help")
     assert listing.returncode == 0 and "  export " in listing.stdout
     for words in (["train", "configs/quickstart.yaml", "--help"], ["generate", "--help"], ["evaluate", "--help"],
                   ["infer", "--help"], ["convert", "--help"], ["export", "--help"]):
-        result = _bsms(installed, tmp_path, *words)
+        result = installed.bsms(tmp_path, *words)
         assert result.returncode == 0 and result.stdout.startswith(f"usage: bsms {words[0]} "), (words, result.stderr)
 
 
 @pytest.mark.slow
-def test_a_user_trains_from_a_config_of_their_own(installed, tiny_dataset, tmp_path):
-    """No clone: a config file in the user's folder, its dataset config beside it."""
-    dataset_config, data_root = tiny_dataset
-    mine = tmp_path / "my_dataset.yaml"
-    mine.write_text(dataset_config.read_text())
-    run = tiny_run_config(tiny_dataset, "runs", name="mine", train={"steps": 4, "valid_every": 4,
-                                                                  "checkpoint_every": 4},
-                          evaluate={"enabled": False})
-    run["dataset"]["config"] = "my_dataset.yaml"
+def test_a_user_generates_trains_and_evaluates_in_a_folder_of_their_own(installed, tmp_path):
+    """No clone: the user's dataset and run configs in their folder; an empty cache, so that the
+    solver's, the graph's and the model's compiled code is built from the installed sources."""
+    for name in ("glyphs.yaml", "glyphs_quick.yaml"):  # the example configs, copied by the user
+        shutil.copy2(ROOT / "configs" / "datasets" / name, tmp_path / name)
+    (tmp_path / "my_dataset.yaml").write_text(TINY_DATASET.format(base="glyphs_quick.yaml"))
+    cache = tmp_path / "cache"
+    made = installed.bsms(tmp_path, "generate", "my_dataset.yaml", "--quiet", cache=cache)
+    assert made.returncode == 0, made.stderr
+    assert made.stdout.startswith("4 trajectories generated, 0 already complete")
+    run = tiny_run_config(("my_dataset.yaml", "data"), "runs", name="mine",
+                          train={"steps": 4, "normalizer_steps": 2, "log_every": 2, "valid_every": 4,
+                                 "checkpoint_every": 4},
+                          evaluate={"trajectories": 1, "steps": 3, "solver": ["ground_truth"], "gifs": 0})
     (tmp_path / "my_run.yaml").write_text(yaml.safe_dump(run))
-    result = _bsms(installed, tmp_path, "train", "my_run.yaml", "--quiet")
-    assert result.returncode == 0, result.stderr
-    assert result.stdout.splitlines()[-1].startswith("trained 4 steps in ")
-    assert (tmp_path / "runs" / "mine" / "checkpoints" / "latest.pt").is_file()
+    trained = installed.bsms(tmp_path, "train", "my_run.yaml", "--quiet", cache=cache)
+    assert trained.returncode == 0, trained.stderr
+    lines = trained.stdout.splitlines()
+    assert lines[-2].startswith("trained 4 steps in ")
+    assert lines[-1].startswith("evaluated on 1 test trajectories: ") and lines[-1].endswith("report: runs/mine/report.md")
+    metrics = json.loads((tmp_path / "runs" / "mine" / "evaluation" / "metrics.json").read_text())
+    assert [row["kind"] for row in metrics["rows"]] == ["learned", "solver"]
+    for result in (made, trained):  # every compiled path was built, none fell back to torch
+        assert "could not build" not in result.stderr, result.stderr
+    built = sorted(path.name.rsplit("-", 1)[0] for path in (cache / "native").glob("*.so"))
+    assert built == ["graph", "messages", "substeps"]

@@ -5,6 +5,7 @@ F-bar, the non-negative kernel of boundary cells; the errors; the thread count; 
 the Python step."""
 
 import math
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -279,3 +280,30 @@ def test_the_contact_trigger_fires_in_the_compiled_substeps():
     assert got.reference.rebuilds == expected.reference.rebuilds
     assert float(got.v[: len(xa), 0].mean()) < -0.5  # they hit and bounced back
     assert gap(got, expected)["x"] < 2e-15 and gap(got, expected)["v"] < 1e-13  # measured 2.2e-16, 1.3e-14
+
+
+def test_a_header_left_out_warns_once_and_the_python_step_runs(monkeypatch, tmp_path):
+    """An install without one of the headers substeps.c includes: one warning that names it, then
+    the Python step, as without a compiler (no FileNotFoundError at the first simulation)."""
+    csrc = tmp_path / "csrc"
+    csrc.mkdir()
+    for file in (fused.SOURCE, *fused.DEPENDS):
+        if file.name != "nodes.h":
+            (csrc / file.name).write_bytes(file.read_bytes())
+    monkeypatch.setattr(fused, "SOURCE", csrc / fused.SOURCE.name)
+    monkeypatch.setattr(fused, "DEPENDS", tuple(csrc / file.name for file in fused.DEPENDS))
+    monkeypatch.setenv("BSMS_CACHE", str(tmp_path / "cache"))
+    fused.library.cache_clear()
+    try:
+        model, state, dt = case_model(2, "neo_hookean", [Wall("sticky", floor)])
+        with pytest.warns(RuntimeWarning, match=r"^could not build the compiled substeps \(cannot read .*/csrc/nodes\.h: "
+                          r"No such file or directory\); each substep runs through the Python step, several times "
+                          r"slower\. Set BSMS_NATIVE=0 to silence this$"):
+            assert not fused.applies(model, state)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            got = advance(model, state, dt, 3)  # cached: no second warning
+        assert torch.equal(got.x, python_steps(model, state, dt, 3).x)
+        assert not list((tmp_path / "cache").rglob("substeps-*"))
+    finally:
+        fused.library.cache_clear()
