@@ -1,12 +1,18 @@
 """The documentation stays true to the code: the API reference names every public name and each
 has a docstring, the config table lists every key with its default, every benchmark script and
-every page is reachable, the README stays a landing page with the two commands CI runs."""
+every page is reachable, the README stays a landing page with the two commands CI runs, and the
+site builds with the README's command without a warning."""
 
 import dataclasses
 import importlib
+import importlib.util
 import inspect
 import json
+import os
 import re
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -123,3 +129,37 @@ def test_the_readme_is_a_landing_page_with_the_two_commands():
     assert "python -m pytest -q" in ci
     for link in re.findall(r"\]\((docs/[^)#]+)", readme):
         assert (ROOT / link).is_file(), f"README links to {link}, which does not exist"
+
+
+def _readme_docs_command() -> list[str]:
+    """The README's command that builds the documentation site (it names it more than once: the same)."""
+    commands = set(re.findall(r"mkdocs build(?: --?[\w-]+)*", (ROOT / "README.md").read_text()))
+    assert len(commands) == 1, f"the README names no docs build command, or several: {sorted(commands)}"
+    command = commands.pop().split()
+    assert "--strict" in command, "the README's docs build must be strict (a warning fails it)"
+    return command
+
+
+def test_the_docs_build_as_the_readme_says_without_a_warning(tmp_path):
+    """The README's docs command as written, in a copy of what it reads (mkdocs.yml, the pages and
+    the packages the API reference is generated from), so that no site/ folder lands in the tree:
+    it exits 0 and prints no warning (strict mode aborts on one; none may be printed either)."""
+    if importlib.util.find_spec("mkdocs") is None:
+        pytest.fail('mkdocs is not installed, so the documentation cannot be built: install the docs extra '
+                    '(pip install -e ".[docs]"; the test extra includes it), as CI does')
+    command = _readme_docs_command()
+    for name in ["mkdocs.yml", "docs", *(p.parent.name for p in sorted(ROOT.glob("*/__init__.py")))]:
+        if (ROOT / name).is_dir():
+            shutil.copytree(ROOT / name, tmp_path / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy2(ROOT / name, tmp_path / name)
+    beside = Path(sys.executable).with_name(command[0])  # this environment's mkdocs, activated or not
+    executable = str(beside) if beside.is_file() else shutil.which(command[0])
+    assert executable, f"no {command[0]} command beside {sys.executable} or on PATH"
+    # NO_MKDOCS_2_WARNING: the theme's banner about its own end of life (as CI sets it), not about the docs
+    result = subprocess.run([executable, *command[1:]], cwd=tmp_path, capture_output=True, text=True, timeout=600,
+                            env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
+    output = result.stdout + result.stderr
+    assert result.returncode == 0, output
+    assert "WARNING" not in output, output
+    assert (tmp_path / "site" / "index.html").is_file() and (tmp_path / "site" / "api" / "index.html").is_file()
