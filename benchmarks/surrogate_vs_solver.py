@@ -1,31 +1,41 @@
-"""The pretrained surrogate against every solver setting on its family's test split.
+"""The pretrained surrogate against every solver setting on its family's held-out split.
 
-Generates the test split of the pretrained model's dataset where it is missing (the dataset
-config is the one beside the weights, ``dataset.json``), rolls the model out from frame 0 of
-every test trajectory, and runs the MPM solver at the data's settings (the ground truth, the
-speed-up's baseline) and at every cheaper setting of :data:`bsms.solver_runs.SOLVER_SETTINGS`
--- A-ULMPM ``adaptive`` and ``total`` where the data used another reference, background meshes
-1.5x and 2x coarser, fewer particles, larger time steps up to the stability limit -- every point
-timed on one thread. ``--workers K`` (default 2) spreads the work over K one-thread processes:
-the learned rollouts are one job, each trajectory's solver runs another, so every point is
-timed while the other workers run (the same footing for all; 1: everything in this process,
-one after another, on an otherwise idle machine). ``bsms.evaluate`` computes the metrics, the
-Pareto front and which settings dominate which.
+Generates the split (default ``final``: held out, evaluated once per published model after its
+recipe is fixed; ``--split test`` the test split) of the pretrained model's dataset where it is
+missing (the dataset config is the one beside the weights, ``dataset.json``), rolls the model out
+from frame 0 of every trajectory, and runs the MPM solver at the data's settings (the ground
+truth, the speed-up's baseline) and at every cheaper setting of
+:data:`bsms.solver_runs.SOLVER_SETTINGS` -- A-ULMPM ``adaptive`` and ``total`` where the data used
+another reference, background meshes 1.5x and 2x coarser, fewer particles, larger time steps up to
+the stability limit, and where the drive is quasi-static mass scaling x10, x100, x1000, x3000 and
+on until the solver's error passes the model's -- and, for a model with the elastic input, that
+input alone (the physics-only answer). Every point is timed on one thread. ``--workers K``
+(default 2) spreads the work over K one-thread processes: the learned rollouts are one job, each
+trajectory's solver runs another, so every point is timed while the other workers run (the same
+footing for all; 1: everything in this process, one after another, on an otherwise idle
+machine). ``bsms.evaluate`` computes the metrics, the Pareto front and which settings dominate
+which.
 
 Writes ``OUT/run/evaluation/`` (metrics.json, speed_accuracy.md/.csv/.png, error curves) and,
 with ``--docs``, copies the table and chart to ``docs/surrogate_vs_solver.md`` and
-``docs/images/surrogate_vs_solver.png`` (what the README shows). Ends with exactly::
+``docs/images/surrogate_vs_solver.png`` (what the README shows). Ends with exactly this line
+(one line, wrapped here)::
 
-    surrogate: speedup S x, rel RMSE all E, vs at rest R, unstable U of N, dominated by none|<settings>
+    surrogate: speedup S x end to end (T x throughput), rel RMSE all E, vs at rest R,
+    unstable U of N, dominated by none|<settings>
 
-S: the ground-truth solver's wall seconds per simulated second over the model's; E: the
-model's rollout RMSE over all steps and free nodes relative to the body size (mean over
-trajectories); R: the mean over trajectories of that RMSE over the one of predicting no motion
-(``vs_rest``, :mod:`bsms.motion`: above 1 the model has learned nothing); U of N: unstable
-rollouts; the settings (names of SOLVER_SETTINGS) that are both at least as fast and at least
-as accurate, one of them strictly.
+S: the ground-truth solver's wall time over the model's, end to end for each new mesh (the
+model's per-mesh setup and its rollout of the mesh alone against the solver's setup and frames,
+its settling pre-roll apart; :mod:`bsms.learned_rollouts`); T: the same with the model's frames
+batched over all trajectories and its setup amortised; E: the model's rollout RMSE over all steps
+and free nodes relative to the body size (mean over trajectories); R: the mean over trajectories
+of that RMSE over the one of predicting no motion (``vs_rest``, :mod:`bsms.motion`: above 1 the
+model has learned nothing); U of N: unstable rollouts; the settings (names of SOLVER_SETTINGS,
+``mass_scaling_S``, or ``elastic_answer`` for the physics-only row) that are both at least as fast
+and at least as accurate, one of them strictly. A line before it names the CPU (AVX2 / AVX-512).
 
-    python benchmarks/surrogate_vs_solver.py [--family press | --pretrained DIR] [--trajectories N] [--workers K]
+    python benchmarks/surrogate_vs_solver.py [--family press | --pretrained DIR] [--split final|test]
+        [--trajectories N] [--workers K] [--docs]
 
 ``--pretrained DIR`` may be an ensemble folder (``python -m bsms.pretrained RUN RUN ... OUT``).
 ``--family NAME`` takes ``pretrained/<NAME>2d``; with ``--docs`` the table and chart of a family
@@ -47,24 +57,34 @@ import torch  # noqa: E402
 
 from bsms.ensemble import ENSEMBLE_FILE, is_ensemble, member_folders  # noqa: E402
 from bsms.evaluate import evaluate  # noqa: E402
+from bsms.learned_rollouts import PHYSICS_LABEL  # noqa: E402
 from bsms.run import EvaluateConfig, load_model  # noqa: E402
-from bsms.solver_runs import SOLVER_SETTINGS  # noqa: E402
+from bsms.solver_runs import SOLVER_SETTINGS, mass_scaling_factor  # noqa: E402
+from datagen.compiled import cpu_summary  # noqa: E402
 from datagen.dataset_config import trajectory_path  # noqa: E402
 from datagen.generate import generate, jobs  # noqa: E402
 
 
-def setting_name(label: str) -> str:
-    """The SOLVER_SETTINGS name of a row label (``stability_limit``'s carries its step factor)."""
-    names = [name for name, prefix in SOLVER_SETTINGS.items() if label == prefix or label.startswith(prefix + " (")]
-    return names[0] if names else label
+def setting_name(row: dict) -> str:
+    """The name of a row's method: its solver setting (SOLVER_SETTINGS or ``mass_scaling_S``),
+    ``elastic_answer`` for the physics-only row, else its label."""
+    if row.get("setting") and (row["setting"] in SOLVER_SETTINGS or mass_scaling_factor(row["setting"])):
+        return row["setting"]
+    return "elastic_answer" if row["label"] == PHYSICS_LABEL else row["label"]
 
 
-def ensure_test_split(dconfig: dict, root: Path) -> None:
-    """Generate the trajectories of the test split that are not on disk yet (one process)."""
-    missing = [j for j in jobs(dconfig, ["test"]) if not trajectory_path(root, dconfig, *j).is_file()]
+def ensure_split(dconfig: dict, root: Path, split: str, workers: int = 1, count: int | None = None) -> None:
+    """Generate the trajectories of ``split`` (its first ``count``; None: all) that are not on disk
+    yet (``workers`` processes)."""
+    if split not in dconfig["splits"]:
+        raise SystemExit(f"error: dataset {dconfig['dataset']} has no {split} split (splits: "
+                         f"{', '.join(dconfig['splits'])}); add it to the splits of the model's dataset.json")
+    missing = [j for j in jobs(dconfig, [split])[:count] if not trajectory_path(root, dconfig, *j).is_file()]
     if missing:
-        print(f"generating {len(missing)} test trajectories of {dconfig['dataset']} into {root}", flush=True)
-        generate(dconfig, out=root, splits=["test"], workers=1)
+        print(f"generating {len(missing)} {split} trajectories of {dconfig['dataset']} into {root}", flush=True)
+        if count is not None:
+            dconfig = {**dconfig, "splits": {**dconfig["splits"], split: count}}
+        generate(dconfig, out=root, splits=[split], workers=workers)
 
 
 def copy_run(pretrained: Path, run: Path) -> None:
@@ -84,11 +104,13 @@ def copy_run(pretrained: Path, run: Path) -> None:
 
 def verdict(rows: list[dict]) -> str:
     """The last line, from the evaluation's rows (the first learned row is the model)."""
-    model = next(r for r in rows if r["kind"] != "solver")
-    dominated = [setting_name(label) for label in model.get("dominated_by") or []]
-    return (f"surrogate: speedup {model['speedup']:.3g} x, rel RMSE all {model['rel_all']:.3g}, "
-            f"vs at rest {model['vs_rest']:.3g}, unstable {model['unstable']} of {model['trajectories']}, "
-            f"dominated by {', '.join(dominated) or 'none'}")
+    model = next(r for r in rows if r["kind"] == "learned")
+    by_label = {r["label"]: r for r in rows}
+    dominated = [setting_name(by_label[label]) if label in by_label else label
+                 for label in model.get("dominated_by") or []]
+    return (f"surrogate: speedup {model['speedup']:.3g} x end to end ({model['speedup_throughput']:.3g} x "
+            f"throughput), rel RMSE all {model['rel_all']:.3g}, vs at rest {model['vs_rest']:.3g}, unstable "
+            f"{model['unstable']} of {model['trajectories']}, dominated by {', '.join(dominated) or 'none'}")
 
 
 def main(argv=None) -> None:
@@ -96,7 +118,9 @@ def main(argv=None) -> None:
     parser.add_argument("--family", default=None, help="the pretrained model of this family: pretrained/<family>2d")
     parser.add_argument("--pretrained", type=Path, default=None, help="a pretrained folder (default: press2d)")
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "surrogate_vs_solver")
-    parser.add_argument("--trajectories", type=int, default=None, help="test trajectories (default: all)")
+    parser.add_argument("--split", default="final", choices=["final", "test", "valid"],
+                        help="the split to evaluate (default final: the held-out one)")
+    parser.add_argument("--trajectories", type=int, default=None, help="trajectories of the split (default: all)")
     parser.add_argument("--solver", nargs="+", default=list(SOLVER_SETTINGS), choices=list(SOLVER_SETTINGS))
     parser.add_argument("--gifs", type=int, default=2)
     parser.add_argument("--workers", type=int, default=2,
@@ -117,8 +141,9 @@ def main(argv=None) -> None:
     copy_run(args.pretrained, run)
     _, config, _ = load_model(run)
     dconfig = json.loads((run / "dataset.json").read_text())
-    ensure_test_split(dconfig, Path(config.dataset.root))  # the run's dataset root, from the repository root
-    options = EvaluateConfig(split="test", trajectories=args.trajectories, solver=args.solver, gifs=args.gifs,
+    # the run's dataset root, from the repository root
+    ensure_split(dconfig, Path(config.dataset.root), args.split, args.workers, args.trajectories)
+    options = EvaluateConfig(split=args.split, trajectories=args.trajectories, solver=args.solver, gifs=args.gifs,
                              threads=1, batch=1, workers=args.workers)
     options.validate("evaluate")
     result = evaluate(run, options=options, progress=True)
@@ -129,6 +154,7 @@ def main(argv=None) -> None:
         chart = ROOT / "docs" / "images" / f"surrogate_vs_solver{suffix}.png"
         shutil.copyfile(evaluation / "speed_accuracy.png", chart)
         shutil.copyfile(evaluation / "speed_accuracy.md", ROOT / "docs" / f"surrogate_vs_solver{suffix}.md")
+    print(f"cpu: {cpu_summary()}, one thread per method, {args.workers} worker(s)")
     print(verdict(result["rows"]))
 
 

@@ -227,10 +227,15 @@ class Scenario:
         elastic answers of all of them in one solve (:meth:`ElasticResponse.many`)."""
         if not self.options.elastic or self.elastic is None:
             return [self.frame(pos, velocity) for pos, velocity in states]
-        loads = [self._penetration(pos, velocity) for pos, velocity in states]
-        answers = self.elastic.many(loads)
+        loads, answers = self.elastic_answers(states)
         return [self.frame(pos, velocity, inputs=(load, answer))
                 for (pos, velocity), load, answer in zip(states, loads, answers, strict=True)]
+
+    def elastic_answers(self, states: list[tuple[np.ndarray, np.ndarray]]) -> tuple[list, list]:
+        """The penetration inputs (N, d) of ``states`` ((pos, velocity) of every scenario node) and
+        the elastic answers to them, all in one solve (needs ``graph.elastic``)."""
+        loads = [self._penetration(pos, velocity) for pos, velocity in states]
+        return loads, self.elastic.many(loads)
 
     def _penetration(self, pos: np.ndarray, velocity: np.ndarray) -> np.ndarray:
         """(N, d) the penetration input of every scenario node (0 without obstacle outlines)."""

@@ -1,14 +1,20 @@
 """Evaluate trained runs against the solver: ``python -m bsms.evaluate RUN_DIR [--compare RUN ...]``.
 
-On a split of the run's dataset (default: test, shapes never seen in training) every learned
-model is rolled out from frame 0 of every trajectory, and the MPM solver is run again
-(:mod:`bsms.solver_runs`) at the data's own settings -- the ground truth: its re-run must
-reproduce the stored trajectory -- and at cheaper settings. Every learned model and every
-solver setting becomes one point (wall seconds per simulated second, rollout RMSE) of the
-speed-accuracy chart, timed in this same run on this same machine and the same CPU threads (the
-solver runs get the evaluation's thread count as solver.threads). Every row names the rows that
-dominate it (:mod:`bsms.pareto`: at least as fast and as accurate, strictly better in one); the
-chart draws the Pareto front.
+On a split of the run's dataset (default: test, shapes never seen in training; ``final``: the
+held-out split, once per published model) every learned model is rolled out from frame 0 of
+every trajectory, and the MPM solver is run again (:mod:`bsms.solver_runs`) at the data's own
+settings -- the ground truth: its re-run must reproduce the stored trajectory -- and at cheaper
+settings, mass scaling among them where the drive is quasi-static (on past x3000 while the most
+scaled run is still more accurate than the model). A model with the elastic input
+(``graph.elastic``) gets a row for that input alone (the physics-only answer,
+:func:`bsms.learned_rollouts.physics_rollouts`). Every method becomes one point (wall seconds per
+simulated second end to end, rollout RMSE) of the speed-accuracy chart, timed in this same run on
+this same machine and the same CPU threads (the solver runs get the evaluation's thread count as
+solver.threads). ``speedup`` is end to end for a new mesh (the learned side's per-mesh setup
+included; :mod:`bsms.learned_rollouts`), ``speedup_throughput`` the batched figure with the
+setup amortised, ``latency_ms`` one frame per call. Every row names the rows that dominate it
+(:mod:`bsms.pareto`: at least as fast and as accurate, strictly better in one); the chart draws
+the Pareto front.
 
 Datasets converted from other sources (DeepMind's, the BSMS-GNN authors') have no scene for the
 solver to re-run: evaluate them with ``--no-solver`` (config: ``evaluate.solver: []``); their
@@ -38,12 +44,13 @@ from bsms import pareto, viz
 from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.fields import eulerian_state, spec_of, world_positions
-from bsms.learned_rollouts import learned_rollouts
+from bsms.learned_rollouts import PHYSICS_LABEL, end_to_end, learned_rollouts, physics_rollouts
 from bsms.report import GROUND_TRUTH, columns, ground_truth_row, heading, rest, write_report, write_tables
 from bsms.rollout import peak_memory_mb, summarize
 from bsms.run import EvaluateConfig, convert_fix, dataset_folder, load_model, resolve_device, saved_options, split_files
-from bsms.solver_runs import SOLVER_SETTINGS, frame_dt, run_solver, setting_label
+from bsms.solver_runs import frame_dt, mass_scaling_factor, next_mass_scaling, run_solver, setting_label
 from datagen.atomic import atomic_path
+from datagen.compiled import cpu_summary
 from datagen.config import output_folder
 from datagen.dataset import DatasetError, load
 
@@ -57,6 +64,7 @@ class _Results:
 
     learned: dict[str, list[dict]]
     solver: dict[str, list[dict]]
+    physics: list[dict] = field(default_factory=list)
     memory: dict[str, float] = field(default_factory=dict)
     pictures: list[Path] = field(default_factory=list)
     rows: list[dict] = field(default_factory=list)
@@ -124,6 +132,23 @@ def _roll_out(results: _Results, methods, trajectories, cache_dir: Path, options
                     results.pictures.append(_pictures(out, k, trajectories[k], result, frames[k - first],
                                                       model.spec))
             results.memory[label] = peak_memory_mb(device)
+    for label, model, config in methods:  # each mesh as a new one, alone: end to end and one frame per call
+        for metrics, trajectory in zip(results.learned[label], trajectories, strict=True):
+            n = _frames(trajectory, options)
+            _end_to_end(metrics, end_to_end(model, config.graph, trajectory, n, device), n * frame_dt(trajectory))
+    _, model, config = methods[0]
+    if model.spec.is_lagrangian:
+        results.physics = physics_rollouts(config.graph, trajectories, [_frames(t, options) for t in trajectories],
+                                           options.bound)
+
+
+def _end_to_end(metrics: dict, timed: dict, simulated: float) -> None:
+    """A learned rollout's metrics with its end-to-end timing (:func:`bsms.learned_rollouts.end_to_end`)
+    over ``simulated`` seconds: ``seconds_per_sim_second`` becomes end to end, the batched figure
+    ``throughput_seconds_per_sim_second``."""
+    metrics["throughput_seconds_per_sim_second"] = metrics["seconds_per_sim_second"]
+    metrics.update(timed)
+    metrics["seconds_per_sim_second"] = timed["seconds"] / simulated
 
 
 def _run_solvers(results: _Results, trajectories, options: EvaluateConfig, progress: bool) -> None:
@@ -131,22 +156,49 @@ def _run_solvers(results: _Results, trajectories, options: EvaluateConfig, progr
     results.solver keyed by each setting's label (:func:`bsms.solver_runs.setting_label`)."""
     done = [_solver_runs(trajectory, options) for trajectory in
             tqdm(trajectories, desc="solver runs", unit="traj", disable=not progress or not options.solver)]
-    _collect_solver(results, done, options)
+    _collect_solver(results, done, options.solver)
+    while (setting := _more_mass_scaling(results)) is not None:
+        extra = [_solver_runs(trajectory, options, [setting]) for trajectory in trajectories]
+        _collect_solver(results, extra, [setting])
 
 
-def _solver_runs(trajectory, options: EvaluateConfig) -> dict:
-    """setting -> metrics of every solver setting on one trajectory (in order: later settings reuse
-    earlier ones, :func:`bsms.solver_runs.run_solver`)."""
+def _solver_runs(trajectory, options: EvaluateConfig, settings=None) -> dict:
+    """setting -> metrics of every solver setting (default: ``options.solver``) on one trajectory
+    (in order: later settings reuse earlier ones, :func:`bsms.solver_runs.run_solver`)."""
     done = {}
-    for setting in options.solver:
+    for setting in options.solver if settings is None else settings:
         done[setting] = run_solver(trajectory, setting, _frames(trajectory, options), options.bound,
                                    threads=torch.get_num_threads(), done=done)
     return done
 
 
-def _collect_solver(results: _Results, done: list[dict], options: EvaluateConfig) -> None:
-    runs = {setting: [d[setting] for d in done] for setting in options.solver}
-    results.solver = {setting_label(setting, metrics): metrics for setting, metrics in runs.items()}
+def _collect_solver(results: _Results, done: list[dict], settings) -> None:
+    runs = {setting: [d[setting] for d in done] for setting in settings}
+    results.solver.update({setting_label(setting, metrics): metrics for setting, metrics in runs.items()})
+
+
+# mass scaling goes on past the settings asked for while its most scaled run is more accurate than
+# the model, up to this factor
+MASS_SCALING_LIMIT = 1_000_000
+
+
+def _more_mass_scaling(results: _Results) -> str | None:
+    """The next mass scaling to run (:func:`bsms.solver_runs.next_mass_scaling`) while the most
+    scaled run so far is stable and more accurate (mean RMSE over the whole rollout) than the
+    first learned model; None when it is not, or no mass scaling ran (skipped: no quasi-static drive)."""
+    scaled = [(mass_scaling_factor(runs[0].get("setting")), runs) for runs in results.solver.values()
+              if runs and mass_scaling_factor(runs[0].get("setting")) is not None
+              and not any("skipped" in r for r in runs)]
+    model = next(iter(results.learned.values()), None)
+    if not scaled or not model:
+        return None
+    scale, runs = max(scaled, key=lambda item: item[0])
+    error = float(np.mean([r["rel_all"] for r in runs]))
+    stable = all("failed" not in r and r.get("unstable_step") is None for r in runs)
+    if not stable or error >= float(np.mean([m["rel_all"] for m in model])):
+        return None
+    following = next_mass_scaling(f"mass_scaling_{scale}")
+    return following if mass_scaling_factor(following) <= MASS_SCALING_LIMIT else None
 
 
 # ----------------------------------------------------------------------------- worker pool
@@ -161,8 +213,11 @@ def _in_pool(results: _Results, runs, files, cache_dir: Path, options: EvaluateC
                               options, str(out))
         jobs = [pool.submit(_solver_job, str(f), options) for f in files] if options.solver else []
         done = [job.result() for job in tqdm(jobs, desc="solver runs", unit="traj", disable=not progress)]
-        results.learned, results.memory, results.pictures = learned.result()
-    _collect_solver(results, done, options)
+        results.learned, results.memory, results.pictures, results.physics = learned.result()
+        _collect_solver(results, done, options.solver)
+        while (setting := _more_mass_scaling(results)) is not None:
+            extra = [job.result() for job in [pool.submit(_solver_job, str(f), options, [setting]) for f in files]]
+            _collect_solver(results, extra, [setting])
 
 
 def _worker_threads(threads: int | None) -> None:
@@ -175,11 +230,11 @@ def _learned_job(runs: list[str], files: list[str], cache_dir: str, options: Eva
     methods = _methods(model, config, [Path(r) for r in runs[1:]], options.checkpoint)
     results = _Results({label: [] for label, _, _ in methods}, {})
     _roll_out(results, methods, [load(f) for f in files], Path(cache_dir), options, Path(out), False)
-    return results.learned, results.memory, results.pictures
+    return results.learned, results.memory, results.pictures, results.physics
 
 
-def _solver_job(file: str, options: EvaluateConfig) -> dict:
-    return _solver_runs(load(file), options)
+def _solver_job(file: str, options: EvaluateConfig, settings=None) -> dict:
+    return _solver_runs(load(file), options, settings)
 
 
 # ----------------------------------------------------------------------------- summary
@@ -187,6 +242,8 @@ def _summary_rows(results: _Results) -> list[dict]:
     """One row per learned model, then per solver setting that ran; speed-ups vs the ground truth."""
     rows = [{"label": label, "kind": "learned", **summarize(metrics), "peak_memory_mb": results.memory[label]}
             for label, metrics in results.learned.items()]
+    if results.physics:
+        rows.append({"label": PHYSICS_LABEL, "kind": "physics", **summarize(results.physics)})
     for label, runs in results.solver.items():
         used = [r for r in runs if "skipped" not in r]
         if not used:
@@ -205,6 +262,8 @@ def _summary_rows(results: _Results) -> list[dict]:
     for row in rows:
         if truth is not None and row.get("seconds_per_sim_second"):
             row["speedup"] = truth["seconds_per_sim_second"] / row["seconds_per_sim_second"]
+        if truth is not None and row.get("throughput_seconds_per_sim_second"):
+            row["speedup_throughput"] = truth["seconds_per_sim_second"] / row["throughput_seconds_per_sim_second"]
     pareto.mark_rows(rows, reference=GROUND_TRUTH)
     return rows
 
@@ -264,7 +323,7 @@ def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateCon
     _check_data(methods, trajectories, files, options, config)
     out = run_dir / "evaluation"
     out.mkdir(parents=True, exist_ok=True)
-    results = _Results({label: [] for label, _, _ in methods}, {SOLVER_SETTINGS[s]: [] for s in options.solver})
+    results = _Results({label: [] for label, _, _ in methods}, {})
     if options.workers > 1:
         _in_pool(results, (run_dir, *compare), files, folder / "hierarchies", options, out, progress)
     else:
@@ -274,9 +333,9 @@ def _evaluate(run_dir: Path, model, config, state, compare, options: EvaluateCon
     write_tables(out, results.rows, columns(model.spec))
     _charts(out, results, frame_dt(trajectories[0]), options.bound)
     training = _training_curve(run_dir, out)
-    details = {"run": str(run_dir), "split": options.split, "trajectories": [str(f) for f in files],
-               "step": int(state["step"]), **_threads(trajectories), "rows": results.rows,
-               "learned": results.learned, "solver": results.solver}
+    details = {"run": str(run_dir), "split": options.split, "cpu": cpu_summary(),
+               "trajectories": [str(f) for f in files], "step": int(state["step"]), **_threads(trajectories),
+               "rows": results.rows, "learned": results.learned, "physics": results.physics, "solver": results.solver}
     with atomic_path(out / "metrics.json") as tmp:
         tmp.write_text(json.dumps(details, indent=1, default=_json_default))
     lines = heading(config, state, options, len(files), dataset_name, model.spec)

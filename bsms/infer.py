@@ -14,7 +14,13 @@ for ParaView, ``prediction.gif`` and ``summary.json``. With ``--solver`` the MPM
 runs the same setup: ``solver.xdmf`` (+ .h5) holds its body nodes at the same frames (to put
 prediction and truth side by side in ParaView), and ``summary.json`` the error, the error of
 predicting no motion (``rest_rel_all``), their ratio ``vs_rest``, both split into rigid and
-deformation parts (:mod:`bsms.motion`), and the speed-up (the error is drawn in the GIF).
+deformation parts (:mod:`bsms.motion`), and the speed-up (the error is drawn in the GIF): ``speedup``
+end to end for this new mesh -- ``solver_s`` (the solver from the scene to the last frame, its
+setup included, its settling pre-roll apart: ``solver_preroll_s``) over ``setup_s + learned_s``
+(placing the mesh and building its scenario: hierarchy, factorisations, outlines; then the
+rollout as run, graph building included, no untimed warm-up) -- beside ``speedup_throughput``
+(the rollout's frames batched, the setup not counted) and ``latency_ms`` (one frame per call, as a
+controller or an interactive user calls the model). ``cpu`` names the processor they were timed on.
 An ensemble folder (:mod:`bsms.ensemble`) answers with its members' mean, timed as such; each
 member is then also rolled out alone (untimed) and how far they disagree is reported: per node
 and frame the root mean square distance of the members' positions from their mean (``spread``
@@ -45,6 +51,7 @@ from bsms.motion import skill
 from bsms.rollout import DEFAULT_BOUND, body_size, rollout_metrics, rollouts
 from bsms.run import load_model, resolve_device, run_dataset_config
 from datagen.atomic import atomic_path
+from datagen.compiled import cpu_summary
 from datagen.config import output_folder
 from datagen.dataset import DatasetError
 from datagen.families import place
@@ -98,6 +105,7 @@ class _Placement:
     and the positions of all scenario nodes that prescribe the kinematic ones (``known``)."""
 
     paths: list[Path]
+    setup_s: float
     sim_config: dict
     resolved: dict
     scene: object
@@ -120,6 +128,9 @@ def _obstacle_path(scene, steps: int, frame_dt: float) -> np.ndarray | None:
 
 
 def _place(paths: list[Path], config, dconfig: dict, overrides: dict | None, steps: int | None) -> _Placement:
+    """The meshes at ``paths`` placed in the family's setting, their scene and scenario built (timed:
+    the learned side's per-mesh setup, ``setup_s``)."""
+    start = time.perf_counter()
     sim_config = place(dconfig["family"], [str(p) for p in paths], dconfig, overrides or {})
     if steps is not None:
         sim_config.setdefault("output", {})["frames"] = int(steps)
@@ -137,11 +148,12 @@ def _place(paths: list[Path], config, dconfig: dict, overrides: dict | None, ste
     known = None if path is None else scenario.positions(np.broadcast_to(body, (frames + 1, *body.shape)), path)
     x0 = scenario.full(body) if known is None else known[0]
     v0 = scenario.full(scene.v[scene.tracked][None], 0.0)[0]
-    return _Placement(paths, sim_config, resolved, scene, scenario, x0, v0, frames, frame_dt, path, known)
+    return _Placement(paths, time.perf_counter() - start, sim_config, resolved, scene, scenario, x0, v0, frames,
+                      frame_dt, path, known)
 
 
 def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder: Path, solver: bool,
-             bound: float, members=None) -> dict:
+             bound: float, members=None, timing: dict | None = None) -> dict:
     """What one rollout did (and, with ``solver``, its error and speed-up against the MPM solver;
     with ``members``, the rollouts of an ensemble's members alone, how far they disagree); writes
     its outputs and summary.json into ``folder``."""
@@ -156,7 +168,7 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
         "graph_nodes_ratio": float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body,
         "steps": len(predicted) - 1, "frame_dt": placed.frame_dt, "finite": result.finite,
         "seconds_per_step": result.seconds_per_step, "scene": placed.resolved["scene"],
-        "params": placed.resolved["params"], "out": str(folder),
+        "params": placed.resolved["params"], "out": str(folder), "cpu": cpu_summary(), **(timing or {}),
     }
     spread = None
     if members is not None:
@@ -164,15 +176,16 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
         summary.update(members=len(members), spread_rel_all=summary["spread_all"] / size)
     truth = None
     if solver:
-        start = time.perf_counter()
         trajectory, summary["solver_cfl"] = simulate_stable(placed.sim_config)
-        summary["solver_seconds"] = time.perf_counter() - start
-        summary["solver_seconds_per_step"] = trajectory.wall_time / placed.steps
+        summary["solver_s"] = float(trajectory.setup_time or 0.0) + trajectory.wall_time
+        summary["solver_preroll_s"] = float(trajectory.preroll_time or 0.0)
+        summary["solver_seconds_per_step"] = summary["solver_s"] / placed.steps
         truth = trajectory.positions[:, :n]
         metrics = rollout_metrics(predicted, truth, free, size, bound)
         summary.update({k: metrics[k] for k in ("rmse_1", "rmse_50", "rmse_all", "rel_all", "unstable_step")})
         summary.update(skill(predicted, truth, free, size, metrics["rel_all"]))
-        summary["speedup"] = summary["solver_seconds_per_step"] / result.seconds_per_step
+        summary["speedup"] = summary["solver_s"] / (summary["setup_s"] + summary["learned_s"])
+        summary["speedup_throughput"] = summary["solver_seconds_per_step"] / result.seconds_per_step
     folder.mkdir(parents=True, exist_ok=True)
     _write_outputs(folder, placed.scene, cells, predicted, truth, placed.frame_dt, placed.obstacle_path, spread)
     with atomic_path(folder / "summary.json") as tmp:
@@ -230,18 +243,25 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     groups = [[p] for p in paths] if separately else [paths]
     placed = [_place(group, config, dconfig, overrides, steps) for group in groups]
 
-    def roll_out(m, shown: bool):  # independent frames (graph.from_rest): all in one call
+    def roll_out(m, shown: bool, per_call: int | None = None, warmup: int = 0):
+        # independent frames (graph.from_rest): all in one call unless per_call says otherwise
         return rollouts(m, [p.scenario for p in placed], [p.x0 for p in placed], [p.v0 for p in placed],
                         [p.steps for p in placed], [p.known for p in placed], device=device, progress=shown,
-                        frames_per_call=max(p.steps for p in placed))
+                        frames_per_call=per_call or max(p.steps for p in placed), warmup=warmup)
 
-    results = roll_out(model, progress)
+    start = time.perf_counter()
+    results = roll_out(model, progress)  # what the user waits for: no untimed warm-up call
+    learned = (time.perf_counter() - start) / len(placed)  # with --separately, each mesh's share of the batch
+    latency = results
+    if config.graph.from_rest and max(p.steps for p in placed) > 1:  # one frame per call, after a warm-up call
+        latency = roll_out(model, False, per_call=1, warmup=1)
     members = [None] * len(placed)
     if isinstance(model, Ensemble):  # each member alone, untimed: how far they disagree
         members = list(zip(*[roll_out(member, False) for member in model.members], strict=True))
     folders = _subfolders(folder, paths) if separately else [folder]
-    summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound, alone)
-                 for p, result, where, alone in zip(placed, results, folders, members, strict=True)]
+    summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound, alone,
+                          {"setup_s": p.setup_s, "learned_s": learned, "latency_ms": 1e3 * one.seconds_per_step})
+                 for p, result, where, alone, one in zip(placed, results, folders, members, latency, strict=True)]
     if not separately:
         return summaries[0]
     summary = {"run": str(run_dir), "out": str(folder), "rollouts": summaries}
@@ -310,11 +330,14 @@ def _describe(summary: dict) -> str:
     refined = (f", refined to {summary['body_nodes']} for the model and the solver"
                if summary["body_nodes"] > sum(summary["nodes"]) else "")
     line = (f"{summary['steps']} steps on {sum(summary['nodes'])} nodes{refined} "
-            f"({summary['seconds_per_step'] * 1e3:.1f} ms per step; levels {summary['graph_nodes_per_level']})")
+            f"({summary['latency_ms']:.1f} ms per frame one at a time, {summary['seconds_per_step'] * 1e3:.1f} "
+            f"batched; levels {summary['graph_nodes_per_level']})")
     if "rmse_all" in summary:
         line += (f"; against the solver: RMSE {summary['rmse_all']:.3g} m ({summary['rel_all']:.3g} of the body "
-                 f"size; {summary['vs_rest']:.3g} of predicting no motion), speed-up {summary['speedup']:.3g}x "
-                 f"(the solver at CFL {summary['solver_cfl']:g})")
+                 f"size; {summary['vs_rest']:.3g} of predicting no motion), speed-up {summary['speedup']:.3g}x end "
+                 f"to end ({summary['speedup_throughput']:.3g}x throughput; the solver at CFL "
+                 f"{summary['solver_cfl']:g}: {summary['solver_s']:.3g} s against {summary['setup_s']:.3g} s of "
+                 f"setup and {summary['learned_s']:.3g} s of rollout)")
     if "members" in summary:
         line += (f"; the mean of {summary['members']} members, who disagree by {summary['spread_rel_all']:.3g} "
                  f"of the body size")

@@ -446,7 +446,8 @@ def summarize(metrics: list[dict]) -> dict:
     Eulerian rollouts the same per field (``fields``)."""
     out = {"trajectories": len(metrics), "unstable": sum(m["unstable_step"] is not None for m in metrics)}
     for key in ("rmse_1", "rmse_50", "rmse_all", "rel_1", "rel_50", "rel_all", "seconds_per_step",
-                "seconds_per_sim_second", "graph_nodes_ratio", "scale", *SKILL_KEYS):
+                "seconds_per_sim_second", "throughput_seconds_per_sim_second", "seconds", "setup_s", "learned_s",
+                "latency_ms", "solver_s", "preroll_s", "graph_nodes_ratio", "scale", *SKILL_KEYS):
         values = np.array([m[key] for m in metrics if key in m], dtype=float)
         if len(values):
             out[key] = float(np.mean(values))

@@ -26,9 +26,8 @@ from bsms.fields import FieldSpec
 from bsms.models.config import ModelConfig
 from bsms.models.simulator import LearnedSimulator
 from bsms.rollout import DEFAULT_BOUND
-from bsms.solver_runs import SOLVER_SETTINGS
+from bsms.solver_runs import SOLVER_SETTINGS, is_setting
 from datagen.atomic import atomic_path
-from datagen.config import reject_unknown
 from datagen.dataset_config import load_dataset_config, trajectory_path
 from datagen.generate import generate, jobs
 from datagen.metadata import write_metadata
@@ -205,8 +204,8 @@ class EvaluateConfig:
     checkpoint: Literal["best", "latest"] = "best"
 
     def validate(self, prefix: str) -> None:
-        if self.split not in ("train", "valid", "test"):
-            raise ConfigError(f"config key '{prefix}.split' must be train, valid or test, got {self.split!r}")
+        if self.split not in ("train", "valid", "test", "final"):
+            raise ConfigError(f"config key '{prefix}.split' must be train, valid, test or final, got {self.split!r}")
         at_least(self, prefix, 1, ("trajectories", "steps", "threads"), optional=True)
         at_least(self, prefix, 0, ("gifs",))
         at_least(self, prefix, 1, ("batch", "workers"))
@@ -214,8 +213,10 @@ class EvaluateConfig:
             raise ConfigError(f"config key '{prefix}.bound' must be positive, got {self.bound}")
         # runs saved before the setting was renamed list 'reference'
         self.solver = ["ground_truth" if s == "reference" else s for s in self.solver]
-        reject_unknown(dict.fromkeys(self.solver), SOLVER_SETTINGS, prefix=f"{prefix}.solver",
-                       where=f"'{prefix}.solver'")
+        unknown = sorted(s for s in self.solver if not is_setting(s))
+        if unknown:
+            raise ConfigError(f"unknown config key '{prefix}.solver.{unknown[0]}'; '{prefix}.solver' accepts: "
+                              f"{', '.join(sorted(SOLVER_SETTINGS))}, or mass_scaling_S for a whole S >= 2")
         _check_device(self.device, f"{prefix}.device")
 
 

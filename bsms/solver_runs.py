@@ -5,14 +5,21 @@ stored trajectory, and its wall time is what a learned model's speed-up is measu
 The cheaper settings -- A-ULMPM's adaptive reference configuration (the fast solver a user
 would run instead), a coarser background mesh, fewer particles (a coarser body mesh, compared
 at the ground truth's nodes by interpolating its displacement), a larger time step up to the
-largest one the solver survives -- are the honest baseline a surrogate must beat on the
-speed-accuracy chart.
+largest one the solver survives, and, where the scene's drive is quasi-static (its module says
+``QUASI_STATIC``), mass scaling as an engineer runs such a load explicitly (inertia x S, weight
+and loads unchanged: density x S, gravity / S; the stable time step grows by sqrt(S)) -- are the
+honest baseline a surrogate must beat on the speed-accuracy chart.
+
+Every run is timed end to end (``solver_s``: from the config to the last frame, its setup
+included, the settling pre-roll before frame 0 apart as ``preroll_s``), the footing of a learned
+model's end-to-end speed-up (:mod:`bsms.learned_rollouts`).
 """
 
 from __future__ import annotations
 
 import copy
 import math
+import re
 import time
 
 import numpy as np
@@ -26,10 +33,12 @@ from bsms.rollout import body_size, eulerian_metrics, rollout_metrics
 from datagen import simulate
 from datagen.config import ConfigError
 from datagen.mpm import SimulationError
+from datagen.scenes import get_scene
 from datagen.simulation import SOLVER_DEFAULTS
 
-__all__ = ["SOLVER_SETTINGS", "STABILITY_FACTORS", "setting_config", "setting_label", "interpolate_to", "run_solver",
-           "largest_stable", "stability_limit", "frame_dt", "free_nodes"]
+__all__ = ["SOLVER_SETTINGS", "STABILITY_FACTORS", "MASS_SCALING", "setting_config", "setting_label",
+           "is_setting", "mass_scaling_factor", "next_mass_scaling", "interpolate_to", "run_solver", "largest_stable",
+           "stability_limit", "frame_dt", "free_nodes"]
 
 # name -> label (how the trajectory's generating config changes: setting_config)
 SOLVER_SETTINGS = {
@@ -42,7 +51,14 @@ SOLVER_SETTINGS = {
     "fewer_particles": "solver, body mesh 1.5x coarser",
     "large_step": "solver, time step 2x larger",
     "stability_limit": "solver, largest stable time step",
+    "mass_scaling_10": "solver, mass scaling x10",
+    "mass_scaling_100": "solver, mass scaling x100",
+    "mass_scaling_1000": "solver, mass scaling x1000",
+    "mass_scaling_3000": "solver, mass scaling x3000",
 }
+# mass_scaling_S for any whole S >= 2 is a setting too (bsms.evaluate goes on past 3000 while the
+# solver stays more accurate than the model: next_mass_scaling)
+MASS_SCALING = re.compile(r"mass_scaling_([1-9][0-9]*)")
 # the reference configuration of the settings that change it
 _REFERENCE = {"adaptive": "adaptive", "adaptive_coarse_mesh": "adaptive", "total": "total"}
 # background mesh coarsening (params.mesh_size x factor) of the settings that have one
@@ -58,8 +74,9 @@ def setting_config(base: dict, setting: str, frames: int, dt: float | None = Non
 
     ``dt``: the time step (s) to try, for ``stability_limit`` only (required there).
     """
-    if setting not in SOLVER_SETTINGS:
-        raise ValueError(f"unknown solver setting {setting!r}; choose from {', '.join(SOLVER_SETTINGS)}")
+    if not is_setting(setting):
+        raise ValueError(f"unknown solver setting {setting!r}; choose from {', '.join(SOLVER_SETTINGS)} "
+                         "(or mass_scaling_S for a whole S >= 2)")
     config = copy.deepcopy(base)
     config["output"] = {**config.get("output", {}), "frames": frames, "step_diagnostics": False}
     params, solver = config.setdefault("params", {}), config.setdefault("solver", {})
@@ -87,13 +104,48 @@ def setting_config(base: dict, setting: str, frames: int, dt: float | None = Non
         if dt is None:
             raise ValueError("setting 'stability_limit' needs the time step to try (dt)")
         solver["dt"] = float(dt)
+    elif mass_scaling_factor(setting) is not None:
+        if not _quasi_static(config) or "density" not in params:
+            return None
+        scale = mass_scaling_factor(setting)
+        params["density"] = float(params["density"]) * scale
+        gravity = params.get("gravity", getattr(get_scene(config["scene"]), "DEFAULTS", {}).get("gravity", 0.0))
+        params["gravity"] = float(gravity) / scale
     return config
+
+
+def is_setting(name: str) -> bool:
+    """Whether ``name`` is a solver setting: a key of :data:`SOLVER_SETTINGS` or ``mass_scaling_S``."""
+    return name in SOLVER_SETTINGS or mass_scaling_factor(name) is not None
+
+
+def mass_scaling_factor(setting: str) -> int | None:
+    """S of a ``mass_scaling_S`` setting (a whole number >= 2), else None."""
+    match = MASS_SCALING.fullmatch(str(setting))
+    return int(match.group(1)) if match and int(match.group(1)) >= 2 else None
+
+
+def next_mass_scaling(setting: str) -> str:
+    """The mass scaling after ``setting`` on the 1-3-10 ladder: 3000 -> 10000 -> 30000 -> 100000."""
+    scale = mass_scaling_factor(setting)
+    if scale is None:
+        raise ValueError(f"{setting!r} is no mass_scaling_S setting")
+    decade = 10 ** int(math.floor(math.log10(scale)))
+    return f"mass_scaling_{3 * decade if scale < 3 * decade else 10 * decade}"
+
+
+def _quasi_static(config: dict) -> bool:
+    """Whether the scene of a generating config drives its body quasi-statically (mass scaling applies)."""
+    try:
+        return bool(getattr(get_scene(config.get("scene")), "QUASI_STATIC", False))
+    except ConfigError:  # a gas scene (datagen.csmpm) or none: no mass to scale
+        return False
 
 
 def setting_label(setting: str, runs: list[dict]) -> str:
     """The chart's and report's label of ``setting`` after its ``runs``: for ``stability_limit``
     with the time step factor reached (a range when trajectories differ)."""
-    label = SOLVER_SETTINGS[setting]
+    label = SOLVER_SETTINGS.get(setting) or f"solver, mass scaling x{mass_scaling_factor(setting)}"
     factors = [r["dt_factor"] for r in runs if setting == "stability_limit" and "dt_factor" in r]
     if not factors:
         return label
@@ -135,7 +187,8 @@ def free_nodes(trajectory) -> np.ndarray:
 
 
 def _failed(message: str, seconds: float, frames: int, trajectory) -> dict:
-    return {"failed": message, "unstable_step": 1, "seconds_per_sim_second": seconds / (frames * frame_dt(trajectory)),
+    return {"failed": message, "unstable_step": 1, "seconds": seconds, "solver_s": seconds,
+            "seconds_per_sim_second": seconds / (frames * frame_dt(trajectory)),
             "rmse_all": math.inf, "rmse_1": math.inf, "rmse_50": math.inf, "rel_all": math.inf,
             "vs_rest": math.inf, "rigid_rel_all": math.inf, "deform_rel_all": math.inf,
             "error_curve": np.full(frames, np.inf)}
@@ -159,7 +212,10 @@ def run_solver(trajectory, setting: str, frames: int, bound: float, threads: int
         if config is None:
             used = trajectory.config.get("solver", {}).get("reference")
             metrics = {"skipped": f"the data already used the {used} reference configuration"
-                       if used == _REFERENCE.get(setting) else f"the scene has no knob for {setting}"}
+                       if used == _REFERENCE.get(setting) else
+                       "the scene's drive is not quasi-static: mass scaling would change its physics"
+                       if mass_scaling_factor(setting) is not None and not _quasi_static(trajectory.config) else
+                       f"the scene has no knob for {setting}"}
         else:
             metrics = _measure(trajectory, config, frames, bound, threads, ground_truth=setting == "ground_truth")
     return {**metrics, "setting": setting}
@@ -199,9 +255,14 @@ def _measure(trajectory, config: dict, frames: int, bound: float, threads: int |
 
 def _timed(metrics: dict, trajectory, other, frames: int, ground_truth: bool, difference) -> dict:
     """``metrics`` with the run's timing and time step (and, for the ground truth, its largest
-    difference from the stored trajectory: ``difference()``)."""
-    metrics["seconds_per_sim_second"] = other.wall_time / (frames * frame_dt(trajectory))
-    metrics["seconds_per_step"] = other.wall_time / frames
+    difference from the stored trajectory: ``difference()``): ``solver_s`` end to end (setup and
+    frames; the pre-roll apart, ``preroll_s``), ``seconds`` the same (every row's end-to-end
+    time), per simulated second and per frame."""
+    setup = float(other.setup_time or 0.0)
+    metrics.update(solver_s=setup + other.wall_time, setup_s=setup, preroll_s=float(other.preroll_time or 0.0))
+    metrics["seconds"] = metrics["solver_s"]
+    metrics["seconds_per_sim_second"] = metrics["solver_s"] / (frames * frame_dt(trajectory))
+    metrics["seconds_per_step"] = metrics["solver_s"] / frames
     metrics.update(dt=float(other.dt), dt_factor=float(other.dt / trajectory.dt), substeps=int(other.substeps))
     if ground_truth:
         metrics["max_difference_from_stored"] = difference()

@@ -125,6 +125,10 @@ def speed_accuracy_chart(points: list[dict], path, ylabel: str = "rollout RMSE /
     return _save(fig, path)
 
 
+# marker and colour of each kind of method on the speed-accuracy chart
+_STYLES = {"learned": ("o", "tab:red"), "solver": ("s", "tab:blue"), "physics": ("^", "tab:green")}
+
+
 def _chart_legend(ax, points: list[dict]) -> None:
     from matplotlib.lines import Line2D
 
@@ -132,7 +136,7 @@ def _chart_legend(ax, points: list[dict]) -> None:
         p.get("front") for p in points) else []
     kinds = {p["kind"] for p in points}
     handles += [Line2D([], [], marker=marker, ls="", color=colour, label=kind)
-                for kind, marker, colour in (("learned", "o", "tab:red"), ("solver", "s", "tab:blue")) if kind in kinds]
+                for kind, (marker, colour) in _STYLES.items() if kind in kinds]
     if any(p.get("dominated") or not math.isfinite(p["error"]) for p in points if p["kind"] != "ground_truth"):
         handles.append(Line2D([], [], marker="s", ls="", markerfacecolor="none", markeredgecolor="gray",
                               label="hollow: dominated or unstable"))
@@ -151,7 +155,7 @@ def _chart_point(ax, p: dict, floor: float, ceiling: float) -> tuple[str, float,
         return None
     stable = math.isfinite(p["error"])
     y = (p["error"] if p["error"] > 0 else floor) if stable else ceiling
-    style = {"learned": ("o", "tab:red"), "solver": ("s", "tab:blue")}.get(p["kind"], ("^", "tab:gray"))
+    style = _STYLES.get(p["kind"], ("v", "tab:gray"))
     filled = stable and not p.get("dominated", False)
     ax.scatter(x, y, marker=style[0], s=50, edgecolors=style[1], facecolors=style[1] if filled else "none",
                linewidths=1.2, zorder=3)

@@ -21,6 +21,12 @@ Trajectory ``index`` of split ``S`` is simulated from ``family.sample(ranges, rn
 ``rng = numpy.random.default_rng([seed, split number, index])`` (:func:`trajectory_config`)
 (redraw ``k`` of it: ``[seed, split number, index, k]``) and lives at
 ``ROOT/<dataset>/<S>/<index:05d>.h5`` (:func:`trajectory_path`).
+
+Splits: ``train`` and ``valid`` (the kinds a model learns; decisions such as checkpoints and
+recipes use ``valid``), ``test`` (kinds training never saw) and ``final``: a held-out split
+evaluated once per published model after its recipe is fixed. A family that defines ``FINAL``
+draws it its own way (new draws of the test kinds plus shapes of no kind in training); any other
+family draws it as its test split, from a random stream of its own (new draws).
 """
 
 from __future__ import annotations
@@ -36,7 +42,7 @@ from .simulation import SOLVER_DEFAULTS, resolve_config
 
 __all__ = ["SPLITS", "load_dataset_config", "trajectory_config", "trajectory_path"]
 
-SPLITS = ("train", "valid", "test")
+SPLITS = ("train", "valid", "test", "final")
 TOP_LEVEL = {"dataset", "family", "seed", "splits", "ranges", "params", "solver", "output", "retry_cfl", "redraws"}
 
 
@@ -96,7 +102,8 @@ def trajectory_config(dconfig: dict, split: str, index: int, *, family=None, dra
     family = family or get_family(dconfig["family"])
     key = [dconfig["seed"], SPLITS.index(split), index] + ([draw] if draw else [])
     rng = np.random.default_rng(key)
-    sampled = family.sample(dconfig["ranges"], rng, split)
+    drawn_as = split if split != "final" or getattr(family, "FINAL", False) else "test"
+    sampled = family.sample(dconfig["ranges"], rng, drawn_as)
     return {
         "scene": family.SCENE, "params": {**dconfig["params"], **sampled}, "solver": dict(dconfig["solver"]),
         "output": dict(dconfig["output"]), "seed": int(rng.integers(2**31)),

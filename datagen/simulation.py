@@ -360,7 +360,9 @@ def run(sim: Simulation) -> Trajectory:
     the trajectory."""
     frames = sim.config["output"]["frames"]
     tracked = torch.as_tensor(sim.scene.tracked, dtype=torch.int64, device=sim.state.x.device)
+    start = time.perf_counter()
     state = settle(sim)
+    preroll = time.perf_counter() - start
     positions, velocities, times, records, per_step = [], [], [], [], []
 
     def snapshot(s: State):
@@ -392,7 +394,7 @@ def run(sim: Simulation) -> Trajectory:
         step_diagnostics=_stack(per_step) if per_step else None, frame_wall_times=np.array(frame_wall),
         node_type=sim.scene.node_type, body_id=sim.scene.body_id, obstacle_nodes=sim.scene.obstacle_nodes,
         obstacle_facets=sim.scene.obstacle_facets, obstacle_positions=sim.scene.obstacle_positions(times),
-        kernel_rebuilds=_rebuild_counts(sim, state, sim.substeps * frames)[0],
+        kernel_rebuilds=_rebuild_counts(sim, state, sim.substeps * frames)[0], preroll_time=preroll,
     )
 
 
@@ -411,6 +413,9 @@ def simulate(config) -> Trajectory:
     if threads:
         torch.set_num_threads(threads)
     try:
-        return run(build_simulation(config))
+        start = time.perf_counter()
+        sim = build_simulation(config)
+        setup = time.perf_counter() - start
+        return replace(run(sim), setup_time=setup)
     finally:
         torch.set_num_threads(before)

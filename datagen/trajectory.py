@@ -45,7 +45,10 @@ class Trajectory:
     fields: name -> array of a converted source dataset's own fields, kept exactly as the source
     holds them (e.g. DeepMind's velocity, pressure, cells; None for the solver's runs).
     kernel_rebuilds: how many times kernels were computed: one per step in eulerian mode, one
-    per reference update (the first included) in total/adaptive mode. diagnostics also hold
+    per reference update (the first included) in total/adaptive mode. setup_time: seconds from
+    the config to the first step (scene, meshes, particles, kernels' tables, time step);
+    preroll_time: seconds of the settling pre-roll before frame 0 (0 without one); both None for
+    a trajectory read from a file (they are not stored). diagnostics also hold
     kernel_rebuilds and contact_rebuilds (T,), cumulative counts at each frame.
     """
 
@@ -68,3 +71,5 @@ class Trajectory:
     obstacle_positions: np.ndarray | None = None
     kernel_rebuilds: int | None = None
     fields: dict | None = None
+    setup_time: float | None = None
+    preroll_time: float | None = None

@@ -21,7 +21,7 @@ from bsms.evaluate import main as evaluate_main
 from bsms.pareto import dominates, row_point
 from bsms.rollout import rollout
 from bsms.run import load_config, load_model
-from bsms.solver_runs import SOLVER_SETTINGS, STABILITY_FACTORS, interpolate_to
+from bsms.solver_runs import SOLVER_SETTINGS, STABILITY_FACTORS, interpolate_to, mass_scaling_factor
 from datagen.dataset import load
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,9 +64,10 @@ TABLE = {
     "method": "label", "kind": "kind", "RMSE@1 (m)": "rmse_1", "RMSE@50 (m)": "rmse_50", "RMSE all (m)": "rmse_all",
     "± std": "rmse_all_std", "RMSE all / body size": "rel_all", "vs at rest": "vs_rest",
     "rigid part / body size": "rigid_rel_all", "deformation part / body size": "deform_rel_all", "unstable rollouts": "unstable",
-    "first unstable step": "first_unstable_step", "s per frame": "seconds_per_step",
-    "s per simulated s": "seconds_per_sim_second", "speed-up vs solver": "speedup", "peak memory (MB)": "peak_memory_mb",
-    "dominated by": "dominated_by",
+    "first unstable step": "first_unstable_step", "setup per mesh (s)": "setup_s", "s end to end": "seconds",
+    "s per simulated s (end to end)": "seconds_per_sim_second", "speed-up end to end": "speedup",
+    "speed-up, throughput": "speedup_throughput", "latency (ms per frame)": "latency_ms",
+    "peak memory (MB)": "peak_memory_mb", "dominated by": "dominated_by",
 }
 
 
@@ -105,7 +106,9 @@ def test_metrics_are_what_they_claim(quickstart_run):
     run, stdout, details = quickstart_run
     rows = {row["label"]: row for row in details["rows"]}
     settings = {row["setting"]: row for row in details["rows"] if row["kind"] == "solver"}
-    assert set(settings) == set(SOLVER_SETTINGS) and set(rows) == {"quickstart", *(r["label"] for r in settings.values())}
+    # the glyphs fall freely: no quasi-static drive, so no mass scaling (skipped: no row)
+    assert set(settings) == {s for s in SOLVER_SETTINGS if mass_scaling_factor(s) is None}
+    assert set(rows) == {"quickstart", *(r["label"] for r in settings.values())}, "no physics row: no elastic input"
     assert details["threads"] == 1 and details["data_solver_threads"] == [1], "every point timed on one thread"
     truth = rows[GROUND_TRUTH]
     assert truth["rmse_all"] == 0.0 and truth["max_difference_from_stored"] == 0.0, \
@@ -122,7 +125,16 @@ def test_metrics_are_what_they_claim(quickstart_run):
     assert learned["rmse_all"] == pytest.approx(np.sqrt(np.mean(curve**2)), rel=1e-15)
     assert learned["rmse_1"] == curve[0] and learned["rel_all"] == pytest.approx(
         learned["rmse_all"] / learned["body_size"], rel=1e-15)
-    assert learned["seconds_per_sim_second"] == pytest.approx(learned["seconds_per_step"] / 0.05, rel=1e-15)
+    # end to end: the per-mesh setup and the mesh's rollout alone; throughput: the batched step
+    assert learned["seconds"] == pytest.approx(learned["setup_s"] + learned["learned_s"], rel=1e-15)
+    assert learned["setup_s"] > 0 and learned["latency_ms"] > 0
+    assert learned["seconds_per_sim_second"] == pytest.approx(learned["seconds"] / (6 * 0.05), rel=1e-12)
+    assert learned["throughput_seconds_per_sim_second"] == pytest.approx(learned["seconds_per_step"] / 0.05, rel=1e-15)
+    model = rows["quickstart"]
+    assert model["speedup_throughput"] == pytest.approx(
+        truth["seconds_per_sim_second"] / model["throughput_seconds_per_sim_second"], rel=1e-15)
+    assert truth["seconds"] == pytest.approx(truth["solver_s"], rel=1e-15) and truth["setup_s"] > 0
+    assert truth["seconds_per_sim_second"] == pytest.approx(truth["solver_s"] / (6 * 0.05), rel=1e-12)
     predicted, expected = independent_rollout(run, details["trajectories"][0], 6)
     np.testing.assert_allclose(curve, expected, rtol=1e-6, atol=0)  # float32 network (measured: equal)
     assert re.search(rf"rollout RMSE {rows['quickstart']['rmse_all']:.4g} m", stdout)
@@ -255,7 +267,12 @@ def test_unknown_solver_setting_names_the_key():
         load_config({"name": "x", "dataset": {"config": "d.yaml"}, "evaluate": {"solver": ["coarse", "large_step"]}})
     assert str(info.value) == ("unknown config key 'evaluate.solver.coarse'; 'evaluate.solver' accepts: "
                                "adaptive, adaptive_coarse_mesh, coarse_mesh, coarse_mesh_1.5, fewer_particles, "
-                               "ground_truth, large_step, stability_limit, total")
+                               "ground_truth, large_step, mass_scaling_10, mass_scaling_100, mass_scaling_1000, "
+                               "mass_scaling_3000, stability_limit, total, or mass_scaling_S for a whole S >= 2")
+    with pytest.raises(ConfigError, match="unknown config key 'evaluate.solver.mass_scaling_1'; "):
+        load_config({"name": "x", "dataset": {"config": "d.yaml"}, "evaluate": {"solver": ["mass_scaling_1"]}})
+    scaled = load_config({"name": "x", "dataset": {"config": "d.yaml"}, "evaluate": {"solver": ["mass_scaling_30000"]}})
+    assert scaled.evaluate.solver == ["mass_scaling_30000"]
     old = load_config({"name": "x", "dataset": {"config": "d.yaml"},
                        "evaluate": {"solver": ["coarse_mesh", "fewer_particles", "large_step"]}})
     assert old.evaluate.solver == ["coarse_mesh", "fewer_particles", "large_step"], "old configs keep working"

@@ -1,6 +1,7 @@
 """python -m bsms.infer: zero-shot rollouts on mesh files (2D and 3D), larger meshes, errors."""
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +16,7 @@ from bsms.infer import main
 from bsms.run import load_config, prepare_dataset
 from bsms.trainer import Trainer
 from datagen import shapes
+from datagen.compiled import cpu_summary
 from datagen.simulation import SOLVER_DEFAULTS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,8 +57,7 @@ def check_outputs(out: Path, summary: dict, steps: int) -> None:
     curve = np.sqrt(np.mean(errors[1:] ** 2, axis=1))
     assert summary["rmse_1"] == pytest.approx(curve[0], rel=2e-15)
     assert summary["rmse_all"] == pytest.approx(np.sqrt(np.mean(curve**2)), rel=2e-15)
-    assert summary["speedup"] == pytest.approx(summary["solver_seconds_per_step"] / summary["seconds_per_step"],
-                                               rel=2e-15)
+    check_speed(summary, steps)
     with Image.open(out / "prediction.gif") as gif:
         assert gif.n_frames == steps + 1
     predicted = read_positions(out / "prediction.xdmf")
@@ -69,6 +70,23 @@ def check_outputs(out: Path, summary: dict, steps: int) -> None:
     assert summary["vs_rest"] == pytest.approx(summary["rel_all"] / rest, rel=1e-10)
     assert summary["rigid_rel_all"] >= 0 and summary["deform_rel_all"] >= 0
     assert summary["rest_rigid_rel_all"] <= rest * (1 + 1e-12) and summary["rest_deform_rel_all"] <= rest * (1 + 1e-12)
+
+
+def check_speed(summary: dict, steps: int) -> None:
+    """The speed-ups are what they claim: end to end (the solver from the scene to the last frame
+    over the learned side's setup and rollout), throughput (per batched frame), never the other
+    way round; the latency is a frame's."""
+    for key in ("speedup", "speedup_throughput", "latency_ms", "setup_s", "learned_s", "solver_s", "solver_preroll_s"):
+        assert key in summary and math.isfinite(summary[key]) and summary[key] >= 0, key
+    assert summary["setup_s"] > 0 and summary["learned_s"] > 0 and summary["solver_s"] > 0
+    assert summary["speedup"] == pytest.approx(summary["solver_s"] / (summary["setup_s"] + summary["learned_s"]),
+                                               rel=1e-12)
+    assert summary["solver_seconds_per_step"] == pytest.approx(summary["solver_s"] / steps, rel=1e-12)
+    assert summary["speedup_throughput"] == pytest.approx(
+        summary["solver_seconds_per_step"] / summary["seconds_per_step"], rel=1e-12)
+    assert summary["speedup"] <= summary["speedup_throughput"], "the setup and every call are in the end-to-end time"
+    assert summary["learned_s"] >= steps * summary["seconds_per_step"] * (1 - 1e-9)
+    assert summary["cpu"] == cpu_summary()
 
 
 def read_positions(path: Path) -> np.ndarray:
@@ -119,7 +137,7 @@ def test_the_solver_is_retried_at_smaller_cfl_numbers_where_it_goes_non_finite(r
     summary = json.loads((out / "summary.json").read_text())
     assert asked == [data_cfl, data_cfl / 2, data_cfl / 4] and summary["solver_cfl"] == data_cfl / 4
     check_outputs(out, summary, 3)
-    assert f"(the solver at CFL {data_cfl / 4:g})" in capsys.readouterr().out
+    assert f"the solver at CFL {data_cfl / 4:g}: " in capsys.readouterr().out
     asked.clear()
     monkeypatch.setattr(gen, "simulate", failing_above(0.0))
     assert main([str(run), "--mesh", str(mesh_file), "--steps", "3", "--solver", "--out", str(out), "--quiet"]) == 2

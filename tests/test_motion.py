@@ -99,10 +99,17 @@ def test_the_surrogate_benchmark_last_line_carries_the_at_rest_ratio():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from surrogate_vs_solver import verdict
 
-    rows = [{"label": "model", "kind": "learned", "speedup": 51.23, "rel_all": 0.00412, "vs_rest": 0.2871,
-             "unstable": 0, "trajectories": 8, "dominated_by": []},
-            {"label": "solver, time step 2x larger", "kind": "solver", "dominated_by": []}]
-    assert verdict(rows) == ("surrogate: speedup 51.2 x, rel RMSE all 0.00412, vs at rest 0.287, unstable 0 of 8, "
-                             "dominated by none")
-    rows[0]["dominated_by"] = ["solver, largest stable time step (3.95x-4x)", "solver, time step 2x larger"]
-    assert verdict(rows).endswith("dominated by stability_limit, large_step")
+    from bsms.learned_rollouts import PHYSICS_LABEL
+
+    rows = [{"label": "model", "kind": "learned", "speedup": 31.23, "speedup_throughput": 51.23, "rel_all": 0.00412,
+             "vs_rest": 0.2871, "unstable": 0, "trajectories": 8, "dominated_by": []},
+            {"label": PHYSICS_LABEL, "kind": "physics", "dominated_by": []},
+            {"label": "solver, time step 2x larger", "kind": "solver", "setting": "large_step", "dominated_by": []},
+            {"label": "solver, largest stable time step (3.95x-4x)", "kind": "solver", "setting": "stability_limit",
+             "dominated_by": []},
+            {"label": "solver, mass scaling x10000", "kind": "solver", "setting": "mass_scaling_10000",
+             "dominated_by": []}]
+    assert verdict(rows) == ("surrogate: speedup 31.2 x end to end (51.2 x throughput), rel RMSE all 0.00412, "
+                             "vs at rest 0.287, unstable 0 of 8, dominated by none")
+    rows[0]["dominated_by"] = [r["label"] for r in rows[1:]]
+    assert verdict(rows).endswith("dominated by elastic_answer, large_step, stability_limit, mass_scaling_10000")

@@ -123,7 +123,9 @@ def test_setting_config_changes_exactly_one_knob():
         "large_step": changed(solver={"cfl": 0.6}),
         "total": changed(solver={"reference": "total"}),
     }
-    assert set(expected) | {"stability_limit"} == set(SOLVER_SETTINGS)
+    scaled = {s for s in SOLVER_SETTINGS if s.startswith("mass_scaling_")}
+    assert set(expected) | {"stability_limit"} | scaled == set(SOLVER_SETTINGS)
+    assert all(setting_config(BASE, s, 6) is None for s in scaled), "glyphs fall freely: no quasi-static drive"
     for setting, config in expected.items():
         assert setting_config(BASE, setting, 6) == config, setting
     assert setting_config(BASE, "stability_limit", 6, dt=0.004) == changed(solver={"dt": 0.004})
@@ -194,7 +196,8 @@ class FakeSolver:
         substeps = math.ceil(0.05 / dt - 1e-9)
         error = 1.0 if factor > self.unstable_above else 1e-3 * factor
         return SimpleNamespace(positions=self.truth + error, wall_time=0.6 / factor, dt=0.05 / substeps,
-                               substeps=substeps, body_id=None, mesh=SimpleNamespace(nodes=self.truth[0]))
+                               substeps=substeps, body_id=None, mesh=SimpleNamespace(nodes=self.truth[0]),
+                               setup_time=0.0, preroll_time=0.0)
 
 
 def search(monkeypatch, fake: FakeSolver, done=None) -> dict:

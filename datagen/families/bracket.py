@@ -8,6 +8,11 @@ turning by up to 90 degrees: bars, L brackets, arcs, S and Z shapes), each drawn
 no test bracket is a training one. The indenter (disk or box) starts just above the bracket's
 outer part and moves down along a line near the vertical, holds and goes back
 (:mod:`datagen.scenes.press`, whose scene this family samples).
+
+The ``final`` split (held out, evaluated once per published model) draws, with probability
+``ranges.final_novel``, a bracket of a kind no other split holds -- ``ranges.final_segments``
+pieces, thinner (``ranges.final_width``) and turning by up to ``ranges.final_turn`` degrees --
+else a new draw like the test split's.
 """
 
 from __future__ import annotations
@@ -18,14 +23,16 @@ import numpy as np
 
 from ..config import ConfigError
 from .base import check_ranges, integer, log_uniform, midpoint, uniform
-from .press import _indenter, _simple, centreline, mitred_outline, placed_config
+from .press import _fraction, _indenter, _simple, centreline, mitred_outline, placed_config
 
 NAME = "bracket"
 SCENE = "press"
 DIM, CONTACT, OBSTACLES, CLAMPED = 2, True, True, False
 DRIVEN = True  # the indenter moves as prescribed and does work on the body
+FINAL = True  # the final split is drawn its own way (module docstring)
 RANGES = {
     "segments": [1, 3], "width": [0.18, 0.3], "turn": 90.0,
+    "final_novel": 0.5, "final_segments": [4, 4], "final_width": [0.12, 0.18], "final_turn": 120.0,
     "size": [0.1, 0.13], "E": [3e7, 3e8], "nu": [0.3, 0.45], "density": [1000.0, 1500.0],
     "indenters": ["disk", "box"], "indenter_scale": [0.08, 0.15], "indenter_aspect": [0.4, 1.0],
     "indenter_offset": [0.15, 0.4], "speed": [0.08, 0.15], "angle": [-15.0, 15.0], "gap": [0.001, 0.003],
@@ -52,12 +59,17 @@ def random_bracket(rng: np.random.Generator, segments: int, width: float, turn: 
 
 def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
     r = check_ranges(NAME, RANGES, ranges)
+    prefix = ""
+    if split == "final":  # a novel kind with probability final_novel, else drawn as the test split
+        novel = _fraction(r, "final_novel")
+        prefix = "final_" if rng.uniform() < novel else ""
     size = uniform(r, "size", rng)
-    turn = float(r["turn"])
+    turn = float(r[f"{prefix}turn"])
     if not 0.0 <= turn <= 135.0:
-        raise ConfigError(f"ranges.turn is the largest turn between a bracket's pieces in degrees: 0 to 135, "
+        raise ConfigError(f"ranges.{prefix}turn is the largest turn between a bracket's pieces in degrees: 0 to 135, "
                           f"got {turn!r}")
-    ring = random_bracket(rng, integer(r, "segments", rng, minimum=1), uniform(r, "width", rng), turn)
+    ring = random_bracket(rng, integer(r, f"{prefix}segments", rng, minimum=1), uniform(r, f"{prefix}width", rng),
+                          turn)
     return {
         "polygon": ring, "size": size, "E": log_uniform(r, "E", rng), "nu": uniform(r, "nu", rng),
         "density": uniform(r, "density", rng), **_indenter(r, rng, size),

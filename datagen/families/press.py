@@ -6,7 +6,10 @@ and valid splits draw from ``ranges.train_chars`` or, with probability ``ranges.
 (default 0) a random stroke (:func:`random_stroke`: a thick bent bar, the primitive letters
 and brackets are made of); the test split from ``ranges.test_chars`` or, with probabilities
 ``ranges.test_polygons`` and ``ranges.test_strokes``, a polygon or a stroke -- shapes never seen
-in training (every polygon and stroke is drawn afresh, so a test one is never a training one). With
+in training (every polygon and stroke is drawn afresh, so a test one is never a training one). The
+``final`` split (held out, evaluated once per published model) draws, with probability
+``ranges.final_novel``, a character of ``ranges.final_chars`` (digits: a kind of shape no other split
+holds), else a new draw of the test kinds. With
 ``ranges.train_body_size`` ([low, high] m, log-uniform; default none) the train and valid bodies
 are meshed at a spacing drawn for each (``params.min_nodes`` does not refine them), the test ones
 at ``params.body_size``: a model learns bodies meshed finer and coarser than its test split. The
@@ -34,8 +37,10 @@ NAME = "press"
 SCENE = "press"
 DIM, CONTACT, OBSTACLES, CLAMPED = 2, True, True, False
 DRIVEN = True  # the indenter moves as prescribed and does work on the body
+FINAL = True  # the final split is drawn its own way (module docstring)
 RANGES = {
     "train_chars": "ABCDEFHKLMNPRTVWXYZ", "test_chars": "GJQSU", "test_polygons": 0.5, "train_polygons": 0.0,
+    "final_chars": "0123456789", "final_novel": 0.5,
     "polygon_vertices": [5, 9], "train_strokes": 0.0, "test_strokes": 0.0, "stroke_segments": [1, 4],
     "stroke_width": [0.15, 0.35],
     "size": [0.1, 0.13], "E": [1e6, 2e7], "nu": [0.3, 0.45], "density": [1000.0, 1500.0],
@@ -132,14 +137,30 @@ def _indenter(r: dict, rng: np.random.Generator, size: float) -> dict:
 def _fraction(r: dict, key: str) -> float:
     value = r[key]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
-        raise ConfigError(f"ranges.{key} is the fraction of bodies that are random {key.split('_')[1]}: "
-                          f"a number from 0 to 1, got {value!r}")
+        what = "of novel kinds" if key == "final_novel" else f"that are random {key.split('_')[1]}"
+        raise ConfigError(f"ranges.{key} is the fraction of bodies {what}: a number from 0 to 1, got {value!r}")
     return float(value)
+
+
+def _final_chars(r: dict) -> str:
+    chars = r["final_chars"]
+    if not isinstance(chars, str) or not chars.strip():
+        raise ConfigError(f"ranges.final_chars must be a non-empty string of characters, got {chars!r}")
+    seen = set(chars) & (set(r["train_chars"]) | set(r["test_chars"]))
+    if seen:
+        raise ConfigError(f"ranges.final_chars shares {''.join(sorted(seen))!r} with ranges.train_chars or "
+                          "ranges.test_chars; the final split's novel characters must be of no other split")
+    return chars.replace(" ", "")
 
 
 def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
     r = check_ranges(NAME, RANGES, ranges)
-    chars = _alphabet(r, split)
+    novel = False
+    if split == "final":  # a novel kind with probability final_novel, else drawn as the test split
+        final_chars = _final_chars(r)
+        novel = rng.uniform() < _fraction(r, "final_novel")
+        split = "test"
+    chars = final_chars if novel else _alphabet(r, split)
     size = uniform(r, "size", rng)
     body: dict = {"char": chars[int(rng.integers(len(chars)))]}
     polygons = _fraction(r, "test_polygons" if split == "test" else "train_polygons")
@@ -150,6 +171,8 @@ def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
                           "fractions of polygons and strokes may add up to 1 at most (the rest are letters)")
     # a train/valid draw takes no extra random number when both fractions are 0: older datasets replay
     kind = rng.uniform() if split == "test" or polygons + strokes > 0 else 1.0
+    if novel:
+        kind = 1.0  # the novel character drawn above
     if kind < polygons:
         body = {"polygon": random_polygon(rng, integer(r, "polygon_vertices", rng, minimum=3))}
     elif kind < polygons + strokes:
