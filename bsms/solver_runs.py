@@ -7,8 +7,9 @@ would run instead), a coarser background mesh, fewer particles (a coarser body m
 at the ground truth's nodes by interpolating its displacement), a larger time step up to the
 largest one the solver survives, and, where the scene's drive is quasi-static (its module says
 ``QUASI_STATIC``), mass scaling as an engineer runs such a load explicitly (inertia x S, weight
-and loads unchanged: density x S, gravity / S; the stable time step grows by sqrt(S)) -- are the
-honest baseline a surrogate must beat on the speed-accuracy chart.
+and loads unchanged: density x S, gravity / S; the damping ratios kept: velocity decay rates /
+sqrt(S), :data:`DAMPING_RATES`; the stable time step grows by sqrt(S)) -- are the honest baseline a
+surrogate must beat on the speed-accuracy chart.
 
 Every run is timed end to end (``solver_s``: from the config to the last frame, its setup
 included, the settling pre-roll before frame 0 apart as ``preroll_s``), the footing of a learned
@@ -36,7 +37,7 @@ from datagen.mpm import SimulationError
 from datagen.scenes import get_scene
 from datagen.simulation import SOLVER_DEFAULTS
 
-__all__ = ["SOLVER_SETTINGS", "STABILITY_FACTORS", "MASS_SCALING", "setting_config", "setting_label",
+__all__ = ["SOLVER_SETTINGS", "STABILITY_FACTORS", "MASS_SCALING", "DAMPING_RATES", "setting_config", "setting_label",
            "is_setting", "mass_scaling_factor", "next_mass_scaling", "interpolate_to", "run_solver", "largest_stable",
            "stability_limit", "frame_dt", "free_nodes"]
 
@@ -59,6 +60,12 @@ SOLVER_SETTINGS = {
 # mass_scaling_S for any whole S >= 2 is a setting too (bsms.evaluate goes on past 3000 while the
 # solver stays more accurate than the model: next_mass_scaling)
 MASS_SCALING = re.compile(r"mass_scaling_([1-9][0-9]*)")
+# the scene's velocity decay rates (mass-proportional damping, 1/s) that mass scaling divides by
+# sqrt(S): the scaled body's frequencies are sqrt(S) lower, so the same damping ratio (the same
+# fraction of critical) needs a sqrt(S) smaller rate. On three press_stiff_960 final trajectories
+# vs_rest at x100 / x1000: rates kept 0.07, 0.58, 0.27 / 0.33, 0.71, 0.63; / S 0.04, 0.48, 0.08 /
+# 0.14, 1.17, 0.37; / sqrt(S) 0.03, 0.32, 0.06 / 0.11, 0.86, 0.30 (docs/surrogate_vs_solver.md).
+DAMPING_RATES = ("damping", "settle_damping")
 # the reference configuration of the settings that change it
 _REFERENCE = {"adaptive": "adaptive", "adaptive_coarse_mesh": "adaptive", "total": "total"}
 # background mesh coarsening (params.mesh_size x factor) of the settings that have one
@@ -109,8 +116,11 @@ def setting_config(base: dict, setting: str, frames: int, dt: float | None = Non
             return None
         scale = mass_scaling_factor(setting)
         params["density"] = float(params["density"]) * scale
-        gravity = params.get("gravity", getattr(get_scene(config["scene"]), "DEFAULTS", {}).get("gravity", 0.0))
-        params["gravity"] = float(gravity) / scale
+        defaults = getattr(get_scene(config["scene"]), "DEFAULTS", {})
+        params["gravity"] = float(params.get("gravity", defaults.get("gravity", 0.0))) / scale
+        for key in DAMPING_RATES:  # velocity decay rates (1/s): / sqrt(S) keeps each damping ratio
+            if params.get(key, defaults.get(key)):
+                params[key] = float(params.get(key, defaults.get(key))) / math.sqrt(scale)
     return config
 
 

@@ -73,8 +73,11 @@ def test_mass_scaling_multiplies_inertia_and_keeps_the_weight(pressed):
     assert params["gravity"] == pytest.approx(original["gravity"] / 1000, rel=1e-15)
     assert params["density"] * params["gravity"] == pytest.approx(original["density"] * original["gravity"],
                                                                   rel=1e-15)
+    # the damping ratio c / (2 omega) kept: omega goes as 1 / sqrt(density)
+    for key in ("damping", "settle_damping"):
+        assert original[key] > 0 and params[key] == pytest.approx(original[key] / 1000**0.5, rel=1e-15)
     changed = {k for k in params if params[k] != original[k]}
-    assert changed == {"density", "gravity"}, "nothing else of the scene changes (the drive, the damping)"
+    assert changed == {"density", "gravity", "damping", "settle_damping"}, "nothing else changes (the drive)"
     assert scaled["solver"] == base["solver"] and scaled["output"]["frames"] == 7
 
 
