@@ -20,7 +20,10 @@ setup included, its settling pre-roll apart: ``solver_preroll_s``) over ``setup_
 (placing the mesh and building its scenario: hierarchy, factorisations, outlines; then the
 rollout as run, graph building included, no untimed warm-up) -- beside ``speedup_throughput``
 (the rollout's frames batched, the setup not counted) and ``latency_ms`` (one frame per call, as a
-controller or an interactive user calls the model). ``cpu`` names the processor they were timed on.
+controller or an interactive user calls the model; over the first :data:`LATENCY_FRAMES` frames).
+Not in the end-to-end time, and reported apart: ``model_load_s`` (reading the weights, once per
+process) and ``outputs_s`` (writing the XDMF files and the GIF). ``cpu`` names the processor they
+were timed on.
 An ensemble folder (:mod:`bsms.ensemble`) answers with its members' mean, timed as such; each
 member is then also rolled out alone (untimed) and how far they disagree is reported: per node
 and frame the root mean square distance of the members' positions from their mean (``spread``
@@ -62,6 +65,10 @@ from datagen.scenes import get_scene
 from datagen.simulation import resolve_config
 
 __all__ = ["InferError", "infer", "main"]
+
+
+# latency_ms of a model with independent frames: the mean over at most this many frames, one per call
+LATENCY_FRAMES = 10
 
 
 class InferError(ValueError):
@@ -187,7 +194,9 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
         summary["speedup"] = summary["solver_s"] / (summary["setup_s"] + summary["learned_s"])
         summary["speedup_throughput"] = summary["solver_seconds_per_step"] / result.seconds_per_step
     folder.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
     _write_outputs(folder, placed.scene, cells, predicted, truth, placed.frame_dt, placed.obstacle_path, spread)
+    summary["outputs_s"] = time.perf_counter() - start
     with atomic_path(folder / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=float))
     return summary
@@ -226,7 +235,9 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     ``separately``, {"run", "out", "rollouts": the summary of each mesh}.
     """
     run_dir = Path(run_dir)
+    start = time.perf_counter()
     model, config, state = load_model(run_dir, which)
+    loaded = time.perf_counter() - start
     if config.dataset.kind != "mpm":
         raise InferError(f"run {run_dir} was trained on a converted {config.dataset.kind} dataset, not on an MPM "
                          f"family whose scene a mesh could be placed in; roll it out on its own data with "
@@ -243,24 +254,25 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     groups = [[p] for p in paths] if separately else [paths]
     placed = [_place(group, config, dconfig, overrides, steps) for group in groups]
 
-    def roll_out(m, shown: bool, per_call: int | None = None, warmup: int = 0):
+    def roll_out(m, shown: bool, per_call: int | None = None, warmup: int = 0, most: int | None = None):
         # independent frames (graph.from_rest): all in one call unless per_call says otherwise
         return rollouts(m, [p.scenario for p in placed], [p.x0 for p in placed], [p.v0 for p in placed],
-                        [p.steps for p in placed], [p.known for p in placed], device=device, progress=shown,
-                        frames_per_call=per_call or max(p.steps for p in placed), warmup=warmup)
+                        [min(p.steps, most or p.steps) for p in placed], [p.known for p in placed], device=device,
+                        progress=shown, frames_per_call=per_call or max(p.steps for p in placed), warmup=warmup)
 
     start = time.perf_counter()
     results = roll_out(model, progress)  # what the user waits for: no untimed warm-up call
     learned = (time.perf_counter() - start) / len(placed)  # with --separately, each mesh's share of the batch
     latency = results
     if config.graph.from_rest and max(p.steps for p in placed) > 1:  # one frame per call, after a warm-up call
-        latency = roll_out(model, False, per_call=1, warmup=1)
+        latency = roll_out(model, False, per_call=1, warmup=1, most=LATENCY_FRAMES)
     members = [None] * len(placed)
     if isinstance(model, Ensemble):  # each member alone, untimed: how far they disagree
         members = list(zip(*[roll_out(member, False) for member in model.members], strict=True))
     folders = _subfolders(folder, paths) if separately else [folder]
     summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound, alone,
-                          {"setup_s": p.setup_s, "learned_s": learned, "latency_ms": 1e3 * one.seconds_per_step})
+                          {"setup_s": p.setup_s, "learned_s": learned, "latency_ms": 1e3 * one.seconds_per_step,
+                           "model_load_s": loaded})
                  for p, result, where, alone, one in zip(placed, results, folders, members, latency, strict=True)]
     if not separately:
         return summaries[0]

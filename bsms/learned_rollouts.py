@@ -122,7 +122,7 @@ def physics_rollouts(graph: GraphOptions, trajectories, frames: list[int], bound
     answer in one solve; ``latency_ms``: one frame per solve). [] where ``graph`` has no elastic input."""
     if not graph.elastic:
         return []
-    options = dataclasses.replace(graph, levels=1, from_rest=True)
+    options = dataclasses.replace(graph, levels=1, from_rest=True, clearance=False)  # what the answer needs
     out = []
     for trajectory, n in zip(trajectories, frames, strict=True):
         truth = trajectory.positions[: n + 1]

@@ -5,7 +5,7 @@ to 32 MiB) with a fresh mapping and unmaps it when freed, and gives freed memory
 its heap back to the system past its trim threshold. A learned rollout allocates arrays of
 megabytes per call (node products, edge inputs, a joined graph), so each call page-faults them
 back in: on the press model about 9,000 page faults per call of 36,000 nodes, a quarter of the
-network's time (docs/press.md, "The mirror average in one pass"). :func:`keep_freed_memory` raises
+network's time (docs/press.md at 8757482, "The mirror average in one pass"). :func:`keep_freed_memory` raises
 both thresholds so that freed blocks stay in the heap and are reused without faults.
 
 It is process-wide and acts on glibc only (elsewhere it does nothing). ``bsms.rollout`` (every

@@ -87,6 +87,7 @@ def check_speed(summary: dict, steps: int) -> None:
     assert summary["speedup"] <= summary["speedup_throughput"], "the setup and every call are in the end-to-end time"
     assert summary["learned_s"] >= steps * summary["seconds_per_step"] * (1 - 1e-9)
     assert summary["cpu"] == cpu_summary()
+    assert summary["model_load_s"] > 0 and summary["outputs_s"] > 0, "reported apart, not in the end-to-end time"
 
 
 def read_positions(path: Path) -> np.ndarray:

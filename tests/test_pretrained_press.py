@@ -17,7 +17,7 @@ from datagen import shapes
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from press_zero_shot import outlines  # noqa: E402
 
-# measured with the model trained on press_stiff_960 and its mirror average (docs/press.md, "The mirror
+# measured with the model trained on press_stiff_960 and its mirror average (docs/press.md at 8757482, "The mirror
 # average in one pass"): 0.182 on the star and 0.337 on the notched plate (0.87% and 0.78% at rest;
 # meshed at 4 mm and refined once, as bsms.infer places them; python benchmarks/press_zero_shot.py;
 # without the average 0.240 and 0.335); the bar for shapes of no split is 0.5. The fresh body: a random

@@ -19,12 +19,12 @@ tetrahedra in 3D), E = 1 and the scene's Poisson ratio:
 Prescribing every penetrating node onto the obstacle's surface instead (a bilateral
 displacement condition) over-constrains the body -- a solver's contact lets it sink in by part
 of a cell and slide -- and matched the press family's test split worse in a first comparison
-(docs/press.md, "The body's first-order answer"). A force, though, concentrates its strain under
+(docs/press.md at 8757482, "The body's first-order answer"). A force, though, concentrates its strain under
 the nodes it acts on, so the scaled answer gives the far field too little (the press family's
 training bodies move 2.3 times as far at the median, 0.85-11 times). :meth:`ElasticResponse.constrained`
 (``graph.elastic_load: contact``) is the frictionless contact's answer instead: each pushed node
 moved along its push by its length and free to slide across it, released where the contact would
-pull, unscaled (docs/press.md, "The answer's scale"). A tiny multiple of the
+pull, unscaled (docs/press.md at 8757482, "The answer's scale"). A tiny multiple of the
 stiffness' diagonal keeps a body that nothing holds solvable (it then mostly follows the load
 rigidly). The stiffness is factorised once per scenario, when it is built (with its hierarchy:
 mesh preprocessing, outside a learned frame's time; a process that unpickles a scenario makes

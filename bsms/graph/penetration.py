@@ -12,7 +12,7 @@ boundary condition of contact. Nodes outside every obstacle get 0.
 ``push="leading"`` (``graph.push``) takes the nearest point among the outline's facets that face
 the way the obstacle has travelled since rest only (outward normal . travel > 0): a box pressed
 deeper than a node lies from its side pushes that node down to its face, as the face that swept
-over it did, not sideways out through the side it never crossed (docs/press.md, "The way the
+over it did, not sideways out through the side it never crossed (docs/press.md at 8757482, "The way the
 indenter came").
 
 ``push="collider"`` is the push the data's solver gives (:class:`datagen.mpm.colliders.Collider`):
@@ -21,7 +21,7 @@ v min(1, max(0, travel . v / |v|^2)). The solver's collider acts on a background
 along the nearest face's normal n, and only on material moving into that face, so it moves
 material along n by the travel along n at most: under a box's underside the whole depth, beside
 its sides only as far as the box moved sideways, and nothing where a side trails -- material a
-side passes by is left where it was (docs/press.md, "What the solver's box does at its corners").
+side passes by is left where it was (docs/press.md at 8757482, "What the solver's box does at its corners").
 An obstacle that has not moved pushes as ``nearest``.
 
 Outlines are the connected components of the (subdivided) obstacle facets -- segments in 2D,

@@ -1,7 +1,7 @@
 """Several learned simulators answering as one: the mean of their outputs, frame by frame.
 
 Runs of one recipe that differ only in their seed (or their share of the data) err on different
-bodies (docs/press.md, "Sixteen shapes of no split"): the mean of their outputs errs less than
+bodies (docs/press.md at 8757482, "Sixteen shapes of no split"): the mean of their outputs errs less than
 each, and how far they disagree marks where none of them is to be trusted. The members read one
 graph (:mod:`bsms.ensemble` checks that their graph options are equal), so a frame builds its
 graph once and runs each member's network on it: the graph's cost is shared, the network's is
