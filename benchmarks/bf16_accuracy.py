@@ -4,7 +4,7 @@ The run's model (``best.pt``) predicts, in each precision (``bsms.models.precisi
 
 * one step: every (frame t -> t+1) sample of the ``--split`` trajectories (no noise); the
   error is the RMSE over free nodes of the predicted next position, dt (dv - dv_true) (m);
-* rollouts: each trajectory from frame 0 for all its frames (``bsms.rollout.rollouts``, as
+* rollouts: each trajectory from frame 0 for all its frames (``bsms.rollouts.rollout.rollouts``, as
   ``bsms.evaluate`` does); RMSE over all steps and free body nodes (m), mean over trajectories,
   and the count of unstable rollouts.
 
@@ -44,8 +44,8 @@ def one_step_rmse(model, dataset, precision: str, batch_size: int = 8) -> float:
 def rollout_errors(model, config, trajectories, precision: str) -> dict:
     """Mean rollout RMSE (m and relative to the body size) and unstable count over ``trajectories``."""
     from bsms.data import Scenario
-    from bsms.rollout import body_size, rollout_metrics, rollouts
-    from bsms.solver_runs import free_nodes
+    from bsms.rollouts.rollout import body_size, rollout_metrics, rollouts
+    from bsms.rollouts.solver_runs import free_nodes
 
     scenarios = [Scenario.from_trajectory(t, config.graph) for t in trajectories]
     known = [s.positions(t.positions, t.obstacle_positions) for s, t in zip(scenarios, trajectories, strict=True)]

@@ -8,7 +8,7 @@ from half the budget on), ``--workers`` runs at a time, each on one CPU thread. 
 (resumable: a finished run is kept). Then one ``bsms.evaluate`` rolls every run's last
 checkpoint out on the test split (no solver: the learned models only) and reads its error
 relative to the body size (``rel_all``) and to predicting no motion (``vs_rest``,
-:mod:`bsms.motion`), both means over the test trajectories.
+:mod:`bsms.rollouts.motion`), both means over the test trajectories.
 
 Writes ``<runs>/<prefix>_data_scaling.md`` (the table) and ``docs/images/data_scaling.png``
 (``vs_rest`` and rel RMSE against trajectories, one line per budget, and against steps, one

@@ -1,7 +1,7 @@
 """How far the body's linear-elastic answer goes alone: ``graph.elastic``'s input as a predictor.
 
 For each trajectory of a split, every frame is predicted as the rest shape plus the input
-``graph.elastic`` gives a model (:mod:`bsms.graph.elastic`: linear elasticity on the rest mesh,
+``graph.elastic`` gives a model (:mod:`bsms.physics.elastic`: linear elasticity on the rest mesh,
 held where it touches the container, loaded along the penetration vectors of the indenter at
 that frame, scaled to them) -- no learning. It is the trivial answer a model with that input
 has to beat, scored as learned rollouts are (``vs at rest``: RMSE over all steps over the
@@ -37,11 +37,11 @@ from ensemble import row, score  # noqa: E402
 from bsms.config import ConfigError  # noqa: E402
 from bsms.data import Scenario  # noqa: E402
 from bsms.fields import FieldSpec, world_positions  # noqa: E402
-from bsms.graph.elastic import HOLD, LOADS, ElasticResponse  # noqa: E402
-from bsms.graph.penetration import PUSHES  # noqa: E402
 from bsms.options import GraphOptions  # noqa: E402
+from bsms.physics.elastic import HOLD, LOADS, ElasticResponse  # noqa: E402
+from bsms.physics.penetration import PUSHES  # noqa: E402
+from bsms.rollouts.solver_runs import free_nodes  # noqa: E402
 from bsms.run import split_files  # noqa: E402
-from bsms.solver_runs import free_nodes  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 
 

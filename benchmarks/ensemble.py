@@ -34,11 +34,11 @@ from scipy.stats import spearmanr  # noqa: E402
 
 from bsms.ensemble import spread  # noqa: E402
 from bsms.fields import world_positions  # noqa: E402
-from bsms.learned_rollouts import learned_rollouts  # noqa: E402
-from bsms.motion import skill  # noqa: E402
-from bsms.rollout import body_size, rollout_metrics  # noqa: E402
+from bsms.rollouts.learned_rollouts import learned_rollouts  # noqa: E402
+from bsms.rollouts.motion import skill  # noqa: E402
+from bsms.rollouts.rollout import body_size, rollout_metrics  # noqa: E402
+from bsms.rollouts.solver_runs import free_nodes  # noqa: E402
 from bsms.run import dataset_folder, load_model, split_files  # noqa: E402
-from bsms.solver_runs import free_nodes  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 
 

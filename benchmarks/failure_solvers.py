@@ -151,9 +151,9 @@ def seeding_sensitivity(run: Path, trajectories: int, steps: int | None) -> dict
     of the test split, ``steps`` steps (None: all). -> {seeding: {rmse_1, rmse_50, rmse_all}}."""
     from bsms.data import Scenario
     from bsms.fields import initial_velocity, world_positions
-    from bsms.rollout import body_size, rollout_metrics, rollouts
+    from bsms.rollouts.rollout import body_size, rollout_metrics, rollouts
+    from bsms.rollouts.solver_runs import free_nodes
     from bsms.run import dataset_folder, load_model, split_files
-    from bsms.solver_runs import free_nodes
     from datagen.dataset import load
 
     model, config, _ = load_model(run)

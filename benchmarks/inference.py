@@ -20,7 +20,7 @@ The case of issue 14: glyph "B" of height 0.4 m in the 1 m glyph box, ``body_siz
 ``mesh_size`` 0.012, E = 2e6 Pa, frames of 0.01 s: the solver (``datagen.simulate``, one
 thread) runs ``--case-frames`` frames, its frame time is their median; BSMS-GNN (latent 128,
 ``--levels`` levels, default ``GraphOptions``) rolls out ``--case-steps`` steps from frame 0
-with ``bsms.rollout.rollout`` at the default precision (``auto``), its step time is the
+with ``bsms.rollouts.rollout.rollout`` at the default precision (``auto``), its step time is the
 median of the rollout's step times (graph building, contacts and the network). Graph
 building and the network alone are also timed (median of ``--repeats``).
 
@@ -190,7 +190,7 @@ def solver_frames(frames: int):
 def case(frames: int, steps: int, levels: int, repeats: int) -> dict:
     """The solver's frame and the BSMS-GNN step on the glyph "B" case, in this process."""
     from bsms.data import GraphOptions, Scenario
-    from bsms.rollout import rollout
+    from bsms.rollouts.rollout import rollout
 
     trajectory, solver_seconds = solver_frames(frames)
     scenario = Scenario.from_trajectory(trajectory, GraphOptions(levels=levels))

@@ -2,7 +2,7 @@
 
 For each run given (its latest checkpoint, or ``--checkpoint``), the first ``--trajectories``
 trajectories of its dataset's ``--split`` are rolled out from frame 0 exactly as ``bsms.evaluate``
-does (:func:`bsms.learned_rollouts.learned_rollouts`: a model that predicts from rest gets every
+does (:func:`bsms.rollouts.learned_rollouts.learned_rollouts`: a model that predicts from rest gets every
 frame of the known drive at once), on one thread, ``--repeats`` times after one untimed pass; the
 runs alternate (A B C A B C ...) so that load drift hits all alike, and each figure is the
 median over repeats. Timers wrap, per call, the stages of a frame's graph -- the obstacles within
@@ -44,8 +44,8 @@ import torch  # noqa: E402
 
 from bsms.data import Scenario  # noqa: E402
 from bsms.graph import native as graph_native  # noqa: E402
-from bsms.learned_rollouts import learned_rollouts  # noqa: E402
 from bsms.models import native as model_native  # noqa: E402
+from bsms.rollouts.learned_rollouts import learned_rollouts  # noqa: E402
 from bsms.run import dataset_folder, load_model, split_files  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 

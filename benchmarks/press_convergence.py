@@ -48,9 +48,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from bsms.motion import motion_parts  # noqa: E402
-from bsms.rollout import body_size, rollout_metrics  # noqa: E402
-from bsms.solver_runs import free_nodes  # noqa: E402
+from bsms.rollouts.motion import motion_parts  # noqa: E402
+from bsms.rollouts.rollout import body_size, rollout_metrics  # noqa: E402
+from bsms.rollouts.solver_runs import free_nodes  # noqa: E402
 from datagen import simulate  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 from datagen.refine import subdivide  # noqa: E402
@@ -142,7 +142,7 @@ def check(trajectory, name: str) -> dict:
 def at_rest(positions: np.ndarray, trajectory) -> float:
     """The at-rest error of ``positions`` (T, N, d) of ``trajectory``'s body (the error of
     predicting frame 0 throughout, relative to the body size: how much it deforms, the yardstick
-    ``vs at rest`` divides by; :func:`bsms.motion.motion_parts`)."""
+    ``vs at rest`` divides by; :func:`bsms.rollouts.motion.motion_parts`)."""
     return motion_parts(positions, free_nodes(trajectory), body_size(trajectory.mesh.nodes))["rest_rel_all"]
 
 

@@ -28,8 +28,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
-from bsms.motion import motion_parts  # noqa: E402
-from bsms.rollout import body_size  # noqa: E402
+from bsms.rollouts.motion import motion_parts  # noqa: E402
+from bsms.rollouts.rollout import body_size  # noqa: E402
 from datagen import simulate  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 

@@ -57,9 +57,9 @@ import torch  # noqa: E402
 
 from bsms.ensemble import ENSEMBLE_FILE, is_ensemble, member_folders  # noqa: E402
 from bsms.evaluate import evaluate  # noqa: E402
-from bsms.learned_rollouts import PHYSICS_LABEL  # noqa: E402
+from bsms.rollouts.learned_rollouts import PHYSICS_LABEL  # noqa: E402
+from bsms.rollouts.solver_runs import SOLVER_SETTINGS, mass_scaling_factor  # noqa: E402
 from bsms.run import EvaluateConfig, load_model  # noqa: E402
-from bsms.solver_runs import SOLVER_SETTINGS, mass_scaling_factor  # noqa: E402
 from datagen.compiled import cpu_summary  # noqa: E402
 from datagen.dataset_config import trajectory_path  # noqa: E402
 from datagen.generate import generate, jobs  # noqa: E402

@@ -21,13 +21,13 @@ from importlib.metadata import PackageNotFoundError, version
 
 # name -> (module with main(argv, prog), one line of help, the argv its main expects before ours)
 COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
-    "train": ("bsms.train_cli", "train a learned simulator from a config (generates its data if missing)", ()),
+    "train": ("bsms.training.train_cli", "train a learned simulator from a config (generates its data if missing)", ()),
     "generate": ("datagen.generate", "generate a dataset with the MPM solver (resumable, --shard I/N)", ()),
     "evaluate": ("bsms.evaluate", "roll a trained run out against the solver: table, chart, report.md", ()),
     "infer": ("bsms.infer", "run a trained model on a mesh of your own (--solver: and the solver beside it)", ()),
     "convert": ("bsms.datasets.__main__", "convert DeepMind's or the authors' datasets into trajectory files",
                 ("convert",)),
-    "export": ("bsms.pretrained", "export a run's weights as a small pretrained folder", ()),
+    "export": ("bsms.infer.pretrained", "export a run's weights as a small pretrained folder", ()),
 }
 
 

@@ -21,12 +21,12 @@ from bsms.augment import random_rotation, rotated, trajectories
 from bsms.config import ConfigError
 from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, type_codes, world_positions
 from bsms.graph import bistride_levels
-from bsms.graph.elastic import HOLD, ElasticResponse
 from bsms.graph.frames import SubHierarchy
 from bsms.graph.obstacles import ObstacleReach, Subdivision, facet_edges, subdivide_obstacles
-from bsms.graph.penetration import Clearance, Penetration
 from bsms.level_graph import FrameArrays, LevelGraph, level_graph
 from bsms.options import GraphOptions, NoiseOptions, saved_graph_options
+from bsms.physics.elastic import HOLD, ElasticResponse
+from bsms.physics.penetration import Clearance, Penetration
 from datagen.dataset import DatasetError
 from datagen.trajectory import NodeType
 

@@ -102,6 +102,6 @@ def spread(positions: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, float]:
     """How far an ensemble's members disagree: of their positions ``positions`` (K, T, N, d), per
     node and frame the root mean square distance from their mean (T, N), and its root mean
     square over the ``free`` nodes (N,) and the frames after the first (a length: divide by the
-    body size as :func:`bsms.rollout.rollout_metrics` divides the error)."""
+    body size as :func:`bsms.rollouts.rollout.rollout_metrics` divides the error)."""
     per_node = np.sqrt(np.mean(np.sum((positions - positions.mean(axis=0)) ** 2, axis=-1), axis=0))
     return per_node, float(np.sqrt(np.mean(per_node[1:][:, free] ** 2)))

@@ -68,21 +68,21 @@ class GraphOptions:
     penetration: every node also gets, as an input, how far the moving obstacles reach into
         the body at the coming frame: for a free node inside an obstacle's closed outline (not
         the container of walls around the body) where the obstacle will be, the vector to the
-        outline's nearest point, else 0 (:mod:`bsms.graph.penetration`) -- the kinematic
+        outline's nearest point, else 0 (:mod:`bsms.physics.penetration`) -- the kinematic
         boundary condition an indenter imposes, which the network would otherwise have to
         infer from offsets to the obstacle's surface nodes. 2D (segment outlines) and 3D (triangles).
     push: how ``penetration`` puts a node back: ``nearest``, the vector to the obstacle outline's
         nearest point; ``leading``, to the nearest point of the facets that face the way the
         obstacle has travelled from rest (outward normal . travel > 0), so that a node a box came
         down onto goes down to its face, never sideways through a side that did not sweep over it
-        (:mod:`bsms.graph.penetration`). The same for a disk pressing straight (its leading half).
+        (:mod:`bsms.physics.penetration`). The same for a disk pressing straight (its leading half).
         ``collider``: the push the data's solver gives, the nearest point's vector cut to the
         obstacle's travel along it -- under a box's underside the depth, beside its sides only
         its sideways travel, nothing where a side trails (a side passes material by).
     clearance: the container (the walls around the body) leaves every graph:
         no nodes of its own, no contact edges to them; each node gets instead, as an input, the
         vector from it to the container's nearest point where that is within the contact radius,
-        else 0 (:class:`bsms.graph.penetration.Clearance`). What a floor's contact edges told the
+        else 0 (:class:`bsms.physics.penetration.Clearance`). What a floor's contact edges told the
         network (where the wall is) it gets per node, and a frame's graph keeps only the body and
         the other obstacles (on a press test frame the floor's contacts were a third of level 0's edges).
     drive: with ``from_rest``, every node also gets its displacement from rest, x - X, as an input: 0
@@ -94,13 +94,13 @@ class GraphOptions:
     elastic: every node also gets, as an input, the body's first-order answer to the push: the
         linear-elastic displacement of its rest mesh (held where it touches the container, E = 1,
         the scene's Poisson ratio ``nu``) under forces along the penetration vectors, scaled to
-        match them where they act (:mod:`bsms.graph.elastic`) -- how far a push moves the far end
+        match them where they act (:mod:`bsms.physics.elastic`) -- how far a push moves the far end
         of a thin arm, which the network would otherwise infer from the mesh alone. Needs
         ``penetration`` (its loads) and simplex body meshes.
     elastic_load: how ``elastic`` loads the body: ``force``, forces along the penetration
         vectors, the response scaled to match them where they act; ``contact``, every penetrating
         node moved along its vector by its length (free to slide across it, released where the
-        contact would pull: :meth:`~bsms.graph.elastic.ElasticResponse.constrained`), unscaled --
+        contact would pull: :meth:`~bsms.physics.elastic.ElasticResponse.constrained`), unscaled --
         a contact's answer, which carries the push into the body where a force concentrates it
         under the loaded nodes (on the press family's training bodies the data move 0.85-11 times
         as far as the forced answer, 0.23-1.28 times as far as the contact's: docs/press.md). Costs

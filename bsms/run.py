@@ -1,6 +1,6 @@
 """A training run: its typed config, its folder, its dataset and the model it describes.
 
-Everything that both training (:mod:`bsms.trainer`) and the tools that read a finished run
+Everything that both training (:mod:`bsms.training.trainer`) and the tools that read a finished run
 (:mod:`bsms.evaluate`, :mod:`bsms.infer`) need lives here, so neither imports the other.
 
 A run lives in ``<runs>/<name>/``: ``config.yaml`` (the resolved config), ``dataset.json``
@@ -25,8 +25,8 @@ from bsms.ensemble import is_ensemble, load_ensemble
 from bsms.fields import FieldSpec
 from bsms.models.config import ModelConfig
 from bsms.models.simulator import LearnedSimulator
-from bsms.rollout import DEFAULT_BOUND
-from bsms.solver_runs import SOLVER_SETTINGS, is_setting
+from bsms.rollouts.rollout import DEFAULT_BOUND
+from bsms.rollouts.solver_runs import SOLVER_SETTINGS, is_setting
 from datagen.atomic import atomic_path
 from datagen.dataset_config import load_dataset_config, trajectory_path
 from datagen.generate import generate, jobs
@@ -96,7 +96,7 @@ class TrainConfig:
     or cuda:N; amp: bfloat16 autocast of the network (CUDA, or CPUs with AMX-BF16 or AVX512-BF16;
     :mod:`bsms.models.precision`); workers: data-loading processes.
 
-    Multi-step (pushforward) training (:mod:`bsms.unroll`): unroll: model steps per sample (K;
+    Multi-step (pushforward) training (:mod:`bsms.training.unroll`): unroll: model steps per sample (K;
     1: one-step training). A sample is frame t of a trajectory with t + K <= T - 1; step 0 reads
     frame t (with the training noise), each later step the model's own prediction, integrated
     as a rollout integrates (kinematic nodes from the data), on a graph rebuilt from the
@@ -116,18 +116,18 @@ class TrainConfig:
     scenes symmetric under it: gravity along y, isotropic materials). trajectories: train on the
     first this many training trajectories only (null: all of them), for learning curves.
     tensorboard: also write the training log as TensorBoard event files to
-    ``<run>/tensorboard/`` (:mod:`bsms.training_log`; needs ``pip install "bsms[tensorboard]"``).
+    ``<run>/tensorboard/`` (:mod:`bsms.training.training_log`; needs ``pip install "bsms[tensorboard]"``).
     loss_weight: how the training trajectories weigh in the loss: ``uniform`` (every free node
     alike), or ``motion`` (Lagrangian data: each trajectory's nodes weighted by 1 / s^2, s its
     at-rest error, the RMS distance of its free nodes from frame 0 over all frames, floored at a
     quarter of the median s; weights scaled to mean 1 over the samples), so that the loss
-    weighs each trajectory's error against its own motion as ``vs_rest`` does (:mod:`bsms.motion`)
+    weighs each trajectory's error against its own motion as ``vs_rest`` does (:mod:`bsms.rollouts.motion`)
     and bodies that hardly move are not drowned by those that move far. rotate: each training
     sample turned by a random angle up to this many degrees (0: off; 180: any orientation;
     :mod:`bsms.augment`), for scenes whose physics has no preferred direction (gravity negligible);
     one-step training of Lagrangian data. shard: with several processes (``torchrun``), each holds
     only its share of the training trajectories and draws its part of every batch from it
-    (:mod:`bsms.batches`): the training set's memory divided by the process count, for data sets
+    (:mod:`bsms.training.batches`): the training set's memory divided by the process count, for data sets
     too large to hold once per process; ``batch_size`` a multiple of the process count."""
 
     steps: int = 10_000
@@ -175,7 +175,7 @@ class EvaluateConfig:
     split: dataset split; trajectories: at most this many (null: all); steps: rollout steps
     (null: every frame of the trajectory); bound: relative error (of the body size) that
     marks a rollout unstable; solver: the solver settings to time and compare
-    (:data:`bsms.solver_runs.SOLVER_SETTINGS`; ``ground_truth`` is the speed-up's baseline);
+    (:data:`bsms.rollouts.solver_runs.SOLVER_SETTINGS`; ``ground_truth`` is the speed-up's baseline);
     gifs: rollout GIFs to draw; device: auto, cpu or cuda[:N]; threads: CPU threads of the
     learned models and of the solver runs while timed (null: torch's default), so that every
     point is timed alike whatever solver.threads the data was made with (metrics.json records
@@ -296,7 +296,7 @@ def saved_options(run_dir) -> EvaluateConfig | None:
 
 def find_checkpoint(run_dir, which: str = "best") -> Path:
     """The checkpoint ``which`` of a run folder, falling back from best to latest and from latest
-    to best (a pretrained folder, :mod:`bsms.pretrained`, holds its one checkpoint as best)."""
+    to best (a pretrained folder, :mod:`bsms.infer.pretrained`, holds its one checkpoint as best)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise CheckpointError(f"run folder {run_dir} does not exist; train one with python train.py CONFIG")

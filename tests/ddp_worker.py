@@ -11,7 +11,7 @@ import sys
 import torch
 
 from bsms.run import load_config
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 
 
 def main() -> None:

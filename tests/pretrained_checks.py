@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bsms.learned_rollouts import learned_rollouts
+from bsms.rollouts.learned_rollouts import learned_rollouts
 from bsms.run import load_model
 from datagen.dataset import load
 from datagen.generate import generate

@@ -10,7 +10,7 @@ from bsms.augment import mirrored
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType
 from bsms.run import load_config, prepare_dataset, split_files
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen.dataset import load
 
 FLIP = {2: np.array([-1.0, 1.0]), 3: np.array([-1.0, 1.0, 1.0])}

@@ -1,10 +1,10 @@
-"""bsms.batches: which samples each training process draws, whole and sharded."""
+"""bsms.training.batches: which samples each training process draws, whole and sharded."""
 
 import numpy as np
 import pytest
 
-from bsms.batches import Batches, shard_of
 from bsms.config import ConfigError
+from bsms.training.batches import Batches, shard_of
 
 
 def test_whole_batches_are_slices_of_a_per_epoch_permutation_split_over_processes():

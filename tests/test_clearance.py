@@ -8,10 +8,10 @@ from test_penetration import _scene
 
 from bsms.config import ConfigError
 from bsms.data import GraphOptions, NodeType, Scenario
-from bsms.graph.penetration import Clearance, closest_points
 from bsms.models.simulator import LearnedSimulator
+from bsms.physics.penetration import Clearance, closest_points
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 
 
 def test_the_clearance_is_the_vector_to_the_nearest_wall_within_the_radius():

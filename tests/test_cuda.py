@@ -14,9 +14,9 @@ from conftest import tiny_run_config
 from torch_geometric.data import Batch
 
 from bsms.data import Scenario
-from bsms.rollout import body_size, rollout
+from bsms.rollouts.rollout import body_size, rollout
 from bsms.run import load_config, load_model, prepare_dataset, split_files
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen import simulate
 from datagen.dataset import load
 

@@ -10,7 +10,7 @@ from bsms.config import ConfigError
 from bsms.data import GraphOptions, NodeType, Scenario
 from bsms.models.simulator import LearnedSimulator
 from bsms.run import load_config, load_model, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 
 
 def _scenario():

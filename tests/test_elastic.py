@@ -10,10 +10,10 @@ from test_penetration import _scene
 
 from bsms.config import ConfigError
 from bsms.data import GraphOptions, NodeType, Scenario
-from bsms.graph.elastic import HOLD, ElasticResponse, held_nodes, nodal_measures, stiffness
 from bsms.models.simulator import LearnedSimulator
+from bsms.physics.elastic import HOLD, ElasticResponse, held_nodes, nodal_measures, stiffness
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 
 
 def grid_triangles(nx, ny, width=1.0, height=1.0):

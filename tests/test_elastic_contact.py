@@ -8,8 +8,8 @@ from test_elastic import _on_the_floor, _scenario, kuhn_tetrahedra
 
 from bsms.config import ConfigError
 from bsms.data import GraphOptions
-from bsms.graph import elastic as elastic_module
-from bsms.graph.elastic import REGULARISATION, ElasticResponse
+from bsms.physics import elastic as elastic_module
+from bsms.physics.elastic import REGULARISATION, ElasticResponse
 
 
 def _top_push(rest, n_body, depth):

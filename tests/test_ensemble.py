@@ -7,7 +7,7 @@ import pytest
 from conftest import tiny_run_config
 
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import ensemble  # noqa: E402

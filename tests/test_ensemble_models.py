@@ -15,13 +15,13 @@ from bsms.data import FrameDataset
 from bsms.ensemble import ENSEMBLE_FILE, member_folders
 from bsms.fields import world_positions
 from bsms.infer import main as infer_main
-from bsms.learned_rollouts import learned_rollouts
+from bsms.infer.pretrained import export_ensemble
+from bsms.infer.pretrained import main as export_main
 from bsms.models.ensemble import Ensemble
-from bsms.pretrained import export_ensemble
-from bsms.pretrained import main as export_main
-from bsms.rollout import body_size
+from bsms.rollouts.learned_rollouts import learned_rollouts
+from bsms.rollouts.rollout import body_size
 from bsms.run import build_model, load_config, load_model, prepare_dataset, split_files
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen import shapes
 from datagen.dataset import load
 

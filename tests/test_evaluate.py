@@ -18,10 +18,10 @@ from bsms.config import ConfigError
 from bsms.data import NodeType, Scenario
 from bsms.evaluate import evaluate
 from bsms.evaluate import main as evaluate_main
-from bsms.pareto import dominates, row_point
-from bsms.rollout import rollout
+from bsms.evaluate.pareto import dominates, row_point
+from bsms.rollouts.rollout import rollout
+from bsms.rollouts.solver_runs import SOLVER_SETTINGS, STABILITY_FACTORS, interpolate_to, mass_scaling_factor
 from bsms.run import load_config, load_model
-from bsms.solver_runs import SOLVER_SETTINGS, STABILITY_FACTORS, interpolate_to, mass_scaling_factor
 from datagen.dataset import load
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -300,7 +300,7 @@ def test_coarser_body_is_compared_at_the_ground_truth_nodes():
 
 
 def test_the_body_at_rest_baseline_is_the_error_of_predicting_no_motion(quickstart_run):
-    from bsms.rollout import body_size
+    from bsms.rollouts.rollout import body_size
 
     run = quickstart_run[0]  # the run's latest evaluation (other tests evaluate it again with other options)
     details = json.loads((run / "evaluation" / "metrics.json").read_text())

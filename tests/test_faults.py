@@ -22,7 +22,7 @@ import yaml
 from conftest import tiny_run_config
 
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 60

@@ -28,9 +28,9 @@ from bsms.evaluate import evaluate
 from bsms.evaluate import main as evaluate_main
 from bsms.fields import FieldSpec, eulerian_state, spec_of
 from bsms.infer import InferError, infer
-from bsms.rollout import rollout
+from bsms.rollouts.rollout import rollout
 from bsms.run import load_config, load_model, prepare_dataset, split_files
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen import shapes
 from datagen.dataset import load
 

@@ -12,7 +12,7 @@ import yaml
 
 import datagen
 from bsms.fields import FieldSpec, infer_spec
-from bsms.rollout import eulerian_metrics
+from bsms.rollouts.rollout import eulerian_metrics
 from datagen.config import ConfigError
 from datagen.csmpm import flow
 from datagen.csmpm.coupled_scenes import shock_state

@@ -7,14 +7,14 @@ import torch
 from conftest import tiny_run_config
 from test_unroll import Stub
 
-import bsms.rollout as rollout_module
+import bsms.rollouts.rollout as rollout_module
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
 from bsms.models.blocks import compiled_message_passing
 from bsms.models.simulator import LearnedSimulator
-from bsms.rollout import rollout
+from bsms.rollouts.rollout import rollout
 from bsms.run import load_config, split_files
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 
 OPTIONS = GraphOptions(levels=3, from_rest=True)
 

@@ -17,7 +17,7 @@ from bsms.level_graph import frame_graph, hierarchy_levels
 from bsms.models.graph_unets import GraphUNets, coarse_edges, top_k_per_graph
 from bsms.models.simulator import LearnedSimulator
 from bsms.run import load_config
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen import shapes
 
 N_LEVELS = 3

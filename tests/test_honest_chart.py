@@ -11,10 +11,9 @@ import pytest
 
 from bsms.data import GraphOptions, Scenario
 from bsms.evaluate import MASS_SCALING_LIMIT, _more_mass_scaling, _Results
-from bsms.learned_rollouts import end_to_end, physics_rollouts
-from bsms.rollout import body_size, rollout_metrics
-from bsms.run import load_model, split_files
-from bsms.solver_runs import (
+from bsms.rollouts.learned_rollouts import end_to_end, physics_rollouts
+from bsms.rollouts.rollout import body_size, rollout_metrics
+from bsms.rollouts.solver_runs import (
     SOLVER_SETTINGS,
     is_setting,
     mass_scaling_factor,
@@ -23,6 +22,7 @@ from bsms.solver_runs import (
     setting_config,
     setting_label,
 )
+from bsms.run import load_model, split_files
 from datagen.config import ConfigError
 from datagen.dataset import load
 from datagen.dataset_config import load_dataset_config, trajectory_config

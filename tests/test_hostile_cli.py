@@ -24,7 +24,7 @@ from conftest import tiny_run_config
 from bsms import evaluate as evaluate_cli
 from bsms import infer as infer_cli
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen import generate as datagen_cli
 from datagen import shapes
 from datagen.mesh import Mesh

@@ -14,7 +14,7 @@ from PIL import Image
 
 from bsms.infer import main
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen import shapes
 from datagen.compiled import cpu_summary
 from datagen.simulation import SOLVER_DEFAULTS
@@ -236,7 +236,7 @@ def test_a_pretrained_export_infers_like_its_run(run_2d, tmp_path):
     and inference from it equals inference from the run, bit for bit."""
     import torch
 
-    from bsms.pretrained import main as export_main
+    from bsms.infer.pretrained import main as export_main
 
     run, _ = run_2d
     out = tmp_path / "pretrained"

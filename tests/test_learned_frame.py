@@ -10,7 +10,7 @@ from conftest import tiny_run_config
 from bsms.graph import native as graph_native
 from bsms.models import native as model_native
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import learned_frame  # noqa: E402

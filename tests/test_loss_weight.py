@@ -9,7 +9,7 @@ from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType
 from bsms.level_graph import level_graph
 from bsms.run import build_model, load_config, prepare_dataset, split_files
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 
 OPTIONS = GraphOptions(levels=2)
 

@@ -1,4 +1,4 @@
-"""bsms.memory: freed blocks kept for reuse instead of being paged in anew (glibc)."""
+"""bsms.rollouts.memory: freed blocks kept for reuse instead of being paged in anew (glibc)."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ import platform
 import subprocess
 import sys
 
-from bsms import memory
+from bsms.rollouts import memory
 
 # Twelve rounds of a loop that allocates arrays of 40, 24, 8, 3 and 1 MiB (the largest above glibc's
 # largest automatic mmap threshold, 32 MiB), writes every page and frees them; prints the page
 # faults of the last ten rounds.
 PROBE = """
 import resource, torch
-from bsms.memory import keep_freed_memory
+from bsms.rollouts.memory import keep_freed_memory
 print(keep_freed_memory())
 def faults():
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt

@@ -9,8 +9,8 @@ from torch import nn
 
 from bsms.models import BSMSGNN, EdgeSet, Level, MessagePassingBlock, blocks, native
 from bsms.models.blocks import edge_first_layer, sum_per_receiver
+from bsms.models.normalize import Normalizer
 from bsms.models.simulator import LearnedSimulator, _offsets
-from bsms.normalize import Normalizer
 
 
 @pytest.fixture(autouse=True)

@@ -13,12 +13,12 @@ from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.data import FrameDataset
 from bsms.fields import FieldSpec
-from bsms.learned_rollouts import learned_rollouts
+from bsms.infer.pretrained import export, parse_settings
+from bsms.infer.pretrained import main as export_main
 from bsms.models.simulator import LearnedSimulator
-from bsms.pretrained import export, parse_settings
-from bsms.pretrained import main as export_main
+from bsms.rollouts.learned_rollouts import learned_rollouts
 from bsms.run import load_config, load_model, prepare_dataset, split_files
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen.dataset import load
 
 GRAPH = {"levels": 3, "constants": ["log_E"], "from_rest": True, "penetration": True, "clearance": True,

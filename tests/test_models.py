@@ -1,4 +1,4 @@
-"""bsms.models and bsms.normalize: the physics-free core networks and the feature normaliser."""
+"""bsms.models and bsms.models.normalize: the physics-free core networks and the feature normaliser."""
 
 import numpy as np
 import pytest
@@ -16,7 +16,7 @@ from bsms.models import (
     apply_transition,
     mlp,
 )
-from bsms.normalize import Normalizer
+from bsms.models.normalize import Normalizer
 
 EDGE_DIMS = [3, 2]  # a mesh edge set and a contact edge set
 

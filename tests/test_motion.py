@@ -1,11 +1,11 @@
-"""bsms.motion: the best rigid fit per frame, the rigid/deformation split of motion and error, vs_rest."""
+"""bsms.rollouts.motion: the best rigid fit per frame, the rigid/deformation split of motion and error, vs_rest."""
 
 import math
 
 import numpy as np
 import pytest
 
-from bsms.motion import error_parts, motion_parts, rigid_fit, skill
+from bsms.rollouts.motion import error_parts, motion_parts, rigid_fit, skill
 
 
 def rotation_2d(angle: float) -> np.ndarray:
@@ -99,7 +99,7 @@ def test_the_surrogate_benchmark_last_line_carries_the_at_rest_ratio():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from surrogate_vs_solver import verdict
 
-    from bsms.learned_rollouts import PHYSICS_LABEL
+    from bsms.rollouts.learned_rollouts import PHYSICS_LABEL
 
     rows = [{"label": "model", "kind": "learned", "speedup": 31.23, "speedup_throughput": 51.23, "rel_all": 0.00412,
              "vs_rest": 0.2871, "unstable": 0, "trajectories": 8, "dominated_by": []},

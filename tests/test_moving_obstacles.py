@@ -9,7 +9,7 @@ import torch
 
 from bsms.data import FrameDataset, GraphOptions, NodeType, Scenario
 from bsms.graph.obstacles import subdivide_facets, subdivide_obstacles
-from bsms.rollout import rollout
+from bsms.rollouts.rollout import rollout
 from datagen.dataset import DatasetError, content_digest, is_complete, load, save
 from datagen.metadata import dataset_metadata
 from datagen.scenes.base import lattice, lattice_mesh
@@ -303,7 +303,7 @@ def test_infer_prescribes_the_scene_obstacle_path_where_the_scene_has_one():
 
 
 def test_rollout_gifs_draw_obstacles_where_they_are_in_each_frame(tmp_path):
-    from bsms.viz import rollout_gif
+    from bsms.rollouts.viz import rollout_gif
 
     trajectory = make_trajectory()
     body, facets = trajectory.positions[:4], trajectory.obstacle_facets

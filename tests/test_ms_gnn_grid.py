@@ -16,7 +16,7 @@ from bsms.models.inputs import Context
 from bsms.models.ms_gnn_grid import MSGNNGrid, build_grids, cell_size
 from bsms.models.simulator import LearnedSimulator
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen import shapes
 
 # ----------------------------------------------------------------------------- grid membership

@@ -1,4 +1,4 @@
-"""The honest chart's pieces on hand-made data: dominance and the Pareto front (bsms.pareto), the
+"""The honest chart's pieces on hand-made data: dominance and the Pareto front (bsms.evaluate.pareto), the
 solver settings' config changes, the bounded search for the largest stable time step on a fake
 solver, the report's 'dominated by' column and the chart's step line."""
 
@@ -9,8 +9,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bsms import pareto, report, solver_runs, viz
-from bsms.solver_runs import SOLVER_SETTINGS, STABILITY_FACTORS, setting_config, setting_label
+from bsms.evaluate import pareto, report
+from bsms.rollouts import solver_runs, viz
+from bsms.rollouts.solver_runs import SOLVER_SETTINGS, STABILITY_FACTORS, setting_config, setting_label
 from datagen.config import ConfigError
 from datagen.mpm import SimulationError
 

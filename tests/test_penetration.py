@@ -7,8 +7,9 @@ from conftest import tiny_run_config
 
 from bsms.config import ConfigError
 from bsms.data import GraphOptions, NodeType, Scenario
-from bsms.graph import penetration
-from bsms.graph.penetration import (
+from bsms.models.simulator import LearnedSimulator
+from bsms.physics import penetration
+from bsms.physics.penetration import (
     Penetration,
     closest_points,
     closest_points_3d,
@@ -16,9 +17,8 @@ from bsms.graph.penetration import (
     solid_winding_numbers,
     winding_numbers,
 )
-from bsms.models.simulator import LearnedSimulator
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen import shapes
 
 

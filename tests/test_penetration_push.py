@@ -7,7 +7,7 @@ from test_penetration import _scene as _penetration_scene
 
 from bsms.config import ConfigError
 from bsms.data import GraphOptions, NodeType, Scenario
-from bsms.graph.penetration import Penetration, inside_outline
+from bsms.physics.penetration import Penetration, inside_outline
 from datagen import shapes
 
 

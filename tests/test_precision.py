@@ -8,14 +8,14 @@ from conftest import tiny_run_config
 from torch_geometric.data import Batch
 
 import bsms.models.precision as precision
-import bsms.trainer
+import bsms.training.trainer
 from bsms.config import ConfigError
 from bsms.data import GraphOptions, NodeType, Scenario
+from bsms.models.normalize import Normalizer
 from bsms.models.simulator import LearnedSimulator
-from bsms.normalize import Normalizer
-from bsms.rollout import rollout
+from bsms.rollouts.rollout import rollout
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen import shapes
 
 DIM = 2
@@ -132,11 +132,11 @@ def test_a_bf16_rollout_integrates_in_float64():
 def test_train_amp_on_cpu_only_with_bf16_instructions(tiny_dataset, tmp_path, monkeypatch, one_thread):
     config = load_config(tiny_run_config(tiny_dataset, tmp_path, name="amp", train={"amp": True, "device": "cpu"}))
     folder = prepare_dataset(config, progress=False)
-    monkeypatch.setattr(bsms.trainer, "cpu_has_bf16", lambda: False)
+    monkeypatch.setattr(bsms.training.trainer, "cpu_has_bf16", lambda: False)
     with pytest.raises(ConfigError, match="'train.amp' needs a CUDA device or a CPU with bfloat16 instructions "
                                           r"\(AMX-BF16 or AVX512-BF16\).*set train.amp: false"):
         Trainer(config, dataset_folder=folder)
-    monkeypatch.setattr(bsms.trainer, "cpu_has_bf16", lambda: True)
+    monkeypatch.setattr(bsms.training.trainer, "cpu_has_bf16", lambda: True)
     trainer = Trainer(config, dataset_folder=folder)
     seen = record_dtypes(trainer.model)
     loss = trainer.train_step(Batch.from_data_list([trainer.train_set[(0, (0, 0, 0))]]))

@@ -9,9 +9,9 @@ from torch_geometric.data import Batch
 
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
-from bsms.rollout import rollout
+from bsms.rollouts.rollout import rollout
 from bsms.run import split_files
-from bsms.unroll import UnrollSamples, collate, unrolled_loss
+from bsms.training.unroll import UnrollSamples, collate, unrolled_loss
 
 
 @pytest.fixture(scope="module")

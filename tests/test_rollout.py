@@ -1,11 +1,11 @@
-"""bsms.rollout: metrics against a direct computation, instability detection, kinematic nodes."""
+"""bsms.rollouts.rollout: metrics against a direct computation, instability detection, kinematic nodes."""
 
 import numpy as np
 import pytest
 import torch
 
 from bsms.data import GraphOptions, NodeType, Scenario
-from bsms.rollout import body_size, rollout, rollout_metrics, summarize
+from bsms.rollouts.rollout import body_size, rollout, rollout_metrics, summarize
 from datagen import shapes
 
 
@@ -105,7 +105,7 @@ def falling_scenes():
 @pytest.mark.parametrize("core", ["bsms_gnn", "meshgraphnets"])
 def test_a_batch_of_rollouts_equals_each_alone(core, one_thread):
     from bsms.models.simulator import LearnedSimulator
-    from bsms.rollout import rollouts
+    from bsms.rollouts.rollout import rollouts
 
     scenes = falling_scenes()
     torch.manual_seed(0)
@@ -137,7 +137,7 @@ class Poisoned(Exploding):
 
 
 def test_a_rollout_that_goes_non_finite_leaves_the_batch():
-    from bsms.rollout import rollouts
+    from bsms.rollouts.rollout import rollouts
 
     mesh = shapes.rectangle(1.0, 0.2, 0.1)
     scenario = Scenario.build(mesh, GraphOptions(levels=2, contact=False), frame_dt=0.1)

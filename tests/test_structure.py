@@ -1,5 +1,7 @@
 """The house rules, checked on the source: no import circles among project modules, no module
-over 500 lines and no function over 60 lines in ``bsms/`` and ``datagen/``.
+over 500 lines and no function over 60 lines in ``bsms/`` and ``datagen/``, and at most 12
+modules directly in ``bsms/`` (the rest lives in its sub-packages: training, evaluate, infer,
+rollouts, physics, graph, models, datasets).
 
 Imports are read with ``ast`` from every module, at module level and inside functions alike
 (a function-level import that dodges a circle is still a circle). ``from pkg import name``
@@ -19,6 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("bsms", "datagen")
 MAX_MODULE_LINES = 500
 MAX_FUNCTION_LINES = 60
+MAX_TOP_LEVEL_MODULES = 12  # files directly in bsms/, __init__.py included
 
 
 def project_modules(root: Path = ROOT) -> dict[str, Path]:
@@ -114,3 +117,10 @@ def test_modules_and_functions_stay_small(package):
                 if length > MAX_FUNCTION_LINES:
                     too_long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}() {length} lines")
     assert too_long == [], f"over {MAX_MODULE_LINES} lines a module or {MAX_FUNCTION_LINES} a function"
+
+
+def test_the_learned_side_keeps_a_small_top_level():
+    top = sorted(path.name for path in (ROOT / "bsms").glob("*.py"))
+    assert len(top) <= MAX_TOP_LEVEL_MODULES, (
+        f"bsms/ holds {len(top)} modules directly ({', '.join(top)}); at most {MAX_TOP_LEVEL_MODULES}: "
+        "put a new one in the sub-package of its job")

@@ -1,4 +1,4 @@
-"""bsms.trainer, bsms.checkpoint and train.py: learning, exact resume, data parallelism, errors."""
+"""bsms.training.trainer, bsms.checkpoint and train.py: learning, exact resume, data parallelism, errors."""
 
 import json
 import os
@@ -18,7 +18,7 @@ from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions, frame_velocities
 from bsms.models.simulator import LearnedSimulator
 from bsms.run import build_model, load_config, load_model, prepare_dataset, split_files
-from bsms.trainer import Trainer, lr_factor
+from bsms.training.trainer import Trainer, lr_factor
 
 ROOT = Path(__file__).resolve().parents[1]
 

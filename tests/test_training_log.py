@@ -1,4 +1,4 @@
-"""bsms.training_log: metrics.csv and TensorBoard event files, read back with TensorBoard's own
+"""bsms.training.training_log: metrics.csv and TensorBoard event files, read back with TensorBoard's own
 reader, across a resume."""
 
 import csv
@@ -15,8 +15,8 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from bsms.config import ConfigError
 from bsms.run import load_config, prepare_dataset
-from bsms.trainer import Trainer
-from bsms.training_log import TENSORBOARD_TAGS
+from bsms.training.trainer import Trainer
+from bsms.training.training_log import TENSORBOARD_TAGS
 
 ROOT = Path(__file__).resolve().parents[1]
 

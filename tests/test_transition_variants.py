@@ -24,7 +24,7 @@ from bsms.models.transition_variants import (
     uniform_weights,
 )
 from bsms.run import load_config
-from bsms.trainer import Trainer
+from bsms.training.trainer import Trainer
 from datagen import shapes
 
 N_LEVELS = 3

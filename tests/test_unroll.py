@@ -1,4 +1,4 @@
-"""bsms.unroll: multi-step (pushforward) training, its states and targets, gradients and resume."""
+"""bsms.training.unroll: multi-step (pushforward) training, its states and targets, gradients and resume."""
 
 import copy
 
@@ -12,10 +12,10 @@ from torch_geometric.data import Batch
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType, NoiseOptions
 from bsms.models.simulator import LearnedSimulator
-from bsms.rollout import rollout
+from bsms.rollouts.rollout import rollout
 from bsms.run import load_config, split_files
-from bsms.trainer import Trainer
-from bsms.unroll import UnrollSamples, collate, unrolled_loss
+from bsms.training.trainer import Trainer
+from bsms.training.unroll import UnrollSamples, collate, unrolled_loss
 
 K = 3  # model steps per sample; the tiny trajectories have 7 frames
 

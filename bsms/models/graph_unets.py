@@ -31,7 +31,7 @@ from torch import Tensor, nn
 from bsms.models.blocks import EdgeSet
 from bsms.models.bsms_gnn import add_unet_modules
 from bsms.models.inputs import Context, Level
-from bsms.normalize import Normalizer
+from bsms.models.normalize import Normalizer
 
 __all__ = ["GraphUNets", "top_k_per_graph", "reach", "coarse_pairs", "coarse_edges"]
 

@@ -23,8 +23,8 @@ from bsms.models.blocks import EdgeSet
 from bsms.models.bsms_gnn import BSMSGNN
 from bsms.models.inputs import Context, Level
 from bsms.models.meshgraphnets import MeshGraphNets
+from bsms.models.normalize import Normalizer
 from bsms.models.precision import network_autocast, network_dtype
-from bsms.normalize import Normalizer
 
 CORES = ("bsms_gnn", "meshgraphnets", "ms_gnn_grid", "graph_unets")
 # cores that read only the mesh (level 0) of the bi-stride hierarchy
@@ -66,12 +66,12 @@ class LearnedSimulator(nn.Module):
         contact: whether graphs carry contact edges.
         n_constants: per-node scene constants appended to the node inputs.
         penetration: the graphs carry ``penetration`` (N, d), appended to the node inputs
-            (``graph.penetration``, :mod:`bsms.graph.penetration`).
+            (``graph.penetration``, :mod:`bsms.physics.penetration`).
         clearance: the graphs carry ``clearance`` (N, d), appended after it (``graph.clearance``).
         drive: every node's displacement from rest, pos - rest_pos (N, d), appended after them
             (``graph.drive``: with ``graph.from_rest``, how far the drive has moved the obstacles).
         elastic: the graphs carry ``elastic`` (N, d), the body's linear-elastic answer to the
-            penetration loads, appended last (``graph.elastic``, :mod:`bsms.graph.elastic`).
+            penetration loads, appended last (``graph.elastic``, :mod:`bsms.physics.elastic`).
         elastic_residual: the network outputs the correction to that answer: the free nodes'
             output is the elastic answer over the frame interval plus the network's (normalised
             against the target less that answer; ``graph.elastic_residual``, a model predicting
@@ -243,7 +243,7 @@ class LearnedSimulator(nn.Module):
 
     def prediction_loss(self, prediction: Tensor, graph: LevelGraph, reduction: str = "mean") -> Tensor:
         """The loss of :meth:`loss` of a ``prediction`` (N, node_out) already made of ``graph``
-        (multi-step training, :mod:`bsms.unroll`, goes on from the prediction it scores)."""
+        (multi-step training, :mod:`bsms.training.unroll`, goes on from the prediction it scores)."""
         error = (prediction - self.output_normalizer(self.learned_target(graph))).square().sum(dim=-1)
         if "loss_weight" in graph:  # train.loss_weight (bsms.data.FrameDataset)
             error = error * graph.loss_weight

@@ -36,7 +36,7 @@ from bsms.graph import Transition
 from bsms.models.blocks import after_first_layer, node_update, sum_per_receiver
 from bsms.models.inputs import Context, Level
 from bsms.models.mlp import mlp
-from bsms.normalize import Normalizer
+from bsms.models.normalize import Normalizer
 
 __all__ = [
     "TRANSITIONS", "BiStrideTransition", "GraphConvTransition", "IndexTransition", "LearnableTransition",

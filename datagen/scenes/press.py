@@ -54,7 +54,7 @@ from .bodies import place_body, read_body
 
 NAME = "press"
 # The drive (an indenter at a few cm/s, damped frames) is slow next to the body's waves: an engineer
-# would run this load with mass scaling (bsms.solver_runs, settings mass_scaling_S).
+# would run this load with mass scaling (bsms.rollouts.solver_runs, settings mass_scaling_S).
 QUASI_STATIC = True
 DEFAULTS = {
     "char": "A", "polygon": None, "mesh": None, "size": 0.12, "box": [0.0, 0.0, 0.24, 0.2], "lift": 0.0,

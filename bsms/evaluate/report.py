@@ -9,9 +9,9 @@ from pathlib import Path
 
 import torch
 
-from bsms import pareto
-from bsms.motion import SKILL_KEYS
-from bsms.solver_runs import SOLVER_SETTINGS
+from bsms.evaluate import pareto
+from bsms.rollouts.motion import SKILL_KEYS
+from bsms.rollouts.solver_runs import SOLVER_SETTINGS
 from datagen.atomic import atomic_path
 from datagen.compiled import cpu_summary
 

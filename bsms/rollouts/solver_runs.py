@@ -28,9 +28,9 @@ from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
 from bsms.data import NodeType
 from bsms.fields import eulerian_state, spec_of
-from bsms.memory import keep_freed_memory
-from bsms.motion import skill
-from bsms.rollout import body_size, eulerian_metrics, rollout_metrics
+from bsms.rollouts.memory import keep_freed_memory
+from bsms.rollouts.motion import skill
+from bsms.rollouts.rollout import body_size, eulerian_metrics, rollout_metrics
 from datagen import simulate
 from datagen.config import ConfigError
 from datagen.mpm import SimulationError

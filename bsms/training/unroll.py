@@ -3,7 +3,7 @@
 A sample is frame t of a trajectory with t + K <= T - 1 (frames t..t+K exist). Step k starts
 from a state (x_k, v_k) of every scenario node: step 0 from the data's frame t (with the
 training noise, :meth:`~bsms.data.FrameDataset.sample_state`), step k >= 1 from the model's
-prediction of step k-1 integrated as a rollout integrates (:func:`bsms.rollout.integrate`):
+prediction of step k-1 integrated as a rollout integrates (:func:`bsms.rollouts.rollout.integrate`):
 free nodes v' = v + dv, x' = x + dt v'; kinematic nodes (clamped, obstacle) take the data's
 state of frame t+k (positions, and the input velocities the data gives them). Each step's
 graph is rebuilt from its state by the scenario (contacts and the obstacle nodes in reach
@@ -37,7 +37,7 @@ from torch_geometric.data import Batch
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, LevelGraph, NumberedSamples
 from bsms.level_graph import level_graph
-from bsms.rollout import integrate
+from bsms.rollouts.rollout import integrate
 
 __all__ = ["GRADIENTS", "Start", "UnrollBatch", "UnrollSamples", "collate", "unrolled_loss"]
 

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch_geometric.data import Batch
 
-from bsms.learned_rollouts import learned_rollouts
+from bsms.rollouts.learned_rollouts import learned_rollouts
 
 __all__ = ["one_step_rmse", "rollout_scores"]
 
@@ -39,7 +39,7 @@ def one_step_rmse(model, valid_set, samples: int, batch_size: int, device, preci
 def rollout_scores(model, graph, trajectories, cache_dir, device, scenarios=None) -> tuple[float, float]:
     """(RMSE (m) over every step of every trajectory, each rolled out from frame 0 as one batch;
     the mean over trajectories of ``vs_rest``, that RMSE over the one of predicting no motion,
-    :mod:`bsms.motion`). Both are inf when a rollout goes non-finite."""
+    :mod:`bsms.rollouts.motion`). Both are inf when a rollout goes non-finite."""
     frames = [len(t.times) - 1 for t in trajectories]
     scored = learned_rollouts(model, graph, trajectories, cache_dir, frames, device=device, scenarios=scenarios)
     squares = [metrics["rmse_all"] ** 2 for metrics, _ in scored]

@@ -11,7 +11,7 @@ summed squared distance over the nodes that count):
   truth's best fit onto the prediction and the deformation error left over.
 
 Both parts are RMS over every step and node that counts, relative to the body size, like
-``rel_all`` (:func:`bsms.rollout.rollout_metrics`). ``vs_rest`` is a model's RMSE over all
+``rel_all`` (:func:`bsms.rollouts.rollout.rollout_metrics`). ``vs_rest`` is a model's RMSE over all
 steps divided by that of predicting no motion at all (``rest_rel_all``): above 1 the model has
 learned nothing.
 """

@@ -8,8 +8,8 @@ back in: on the press model about 9,000 page faults per call of 36,000 nodes, a 
 network's time (docs/press.md at 8757482, "The mirror average in one pass"). :func:`keep_freed_memory` raises
 both thresholds so that freed blocks stay in the heap and are reused without faults.
 
-It is process-wide and acts on glibc only (elsewhere it does nothing). ``bsms.rollout`` (every
-learned rollout) and ``bsms.solver_runs`` (the solver timed against it, on the same footing)
+It is process-wide and acts on glibc only (elsewhere it does nothing). ``bsms.rollouts.rollout`` (every
+learned rollout) and ``bsms.rollouts.solver_runs`` (the solver timed against it, on the same footing)
 call it; ``BSMS_KEEP_MEMORY=0`` leaves malloc as it is. The cost: a process keeps up to
 :data:`KEEP_BYTES` of freed memory it would have returned.
 """

@@ -31,10 +31,10 @@ from tqdm import tqdm
 
 from bsms.data import Scenario
 from bsms.level_graph import level_graph
-from bsms.memory import keep_freed_memory
 from bsms.models.blocks import compiled_message_passing
 from bsms.models.precision import network_dtype
-from bsms.motion import SKILL_KEYS
+from bsms.rollouts.memory import keep_freed_memory
+from bsms.rollouts.motion import SKILL_KEYS
 
 __all__ = [
     "Rollout", "rollout", "rollouts", "eulerian_metrics", "rollout_metrics", "field_metrics", "summarize", "body_size",

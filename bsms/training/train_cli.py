@@ -23,7 +23,7 @@ from bsms.checkpoint import CheckpointError, load_checkpoint
 from bsms.config import ConfigError
 from bsms.evaluate import evaluate
 from bsms.run import checkpoint_path, load_config
-from bsms.trainer import Trainer, TrainingDiverged
+from bsms.training.trainer import Trainer, TrainingDiverged
 from datagen import interrupts
 from datagen.config import output_folder
 from datagen.dataset import DatasetError

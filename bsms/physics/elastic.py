@@ -7,9 +7,9 @@ outright, on the body's rest mesh, with linear elasticity (P1 triangles in 2D, p
 tetrahedra in 3D), E = 1 and the scene's Poisson ratio:
 
 - the body is *held* where it touches the container (the walls around it, as
-  :func:`bsms.graph.penetration.outlines` tells them): nodes within ``HOLD`` median rest edges of
+  :func:`bsms.physics.penetration.outlines` tells them): nodes within ``HOLD`` median rest edges of
   a wall are fixed -- a base bonded to the floor, a clamp;
-- the load is the penetration input (:class:`bsms.graph.penetration.Penetration`): each free
+- the load is the penetration input (:class:`bsms.physics.penetration.Penetration`): each free
   node inside an obstacle gets a force along the vector that would put it back on the
   obstacle's surface, weighted by its share of the body's area (volume), ``f_i = m_i p_i``;
 - the response ``u = K^-1 f`` is scaled by the one factor ``a`` that best matches the loaded
@@ -40,7 +40,7 @@ from scipy import linalg, sparse
 from scipy.optimize import nnls
 from scipy.sparse.linalg import splu
 
-from bsms.graph.penetration import closest_on_facets, outlines
+from bsms.physics.penetration import closest_on_facets, outlines
 
 __all__ = ["HOLD", "REGULARISATION", "CONTACT_ITERATIONS", "CACHED_NODES", "LOADS", "stiffness", "nodal_measures",
            "held_nodes", "ElasticResponse"]
@@ -105,7 +105,7 @@ def nodal_measures(rest: np.ndarray, cells: np.ndarray) -> np.ndarray:
 
 def held_nodes(rest: np.ndarray, facets: np.ndarray, n_body: int, tolerance: float) -> np.ndarray:
     """(H,) the body nodes (of the first ``n_body`` of ``rest``) within ``tolerance`` of the container's
-    facets (scenario node indices; :func:`bsms.graph.penetration.outlines`)."""
+    facets (scenario node indices; :func:`bsms.physics.penetration.outlines`)."""
     _, containers = outlines(rest, facets, n_body, "graph.elastic")
     if not containers:
         return np.zeros(0, np.int64)

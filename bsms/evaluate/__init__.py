@@ -40,15 +40,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from bsms import pareto, viz
 from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
+from bsms.evaluate import pareto
+from bsms.evaluate.report import GROUND_TRUTH, columns, ground_truth_row, heading, rest, write_report, write_tables
 from bsms.fields import eulerian_state, spec_of, world_positions
-from bsms.learned_rollouts import PHYSICS_LABEL, end_to_end, learned_rollouts, physics_rollouts
-from bsms.report import GROUND_TRUTH, columns, ground_truth_row, heading, rest, write_report, write_tables
-from bsms.rollout import peak_memory_mb, summarize
+from bsms.rollouts import viz
+from bsms.rollouts.learned_rollouts import PHYSICS_LABEL, end_to_end, learned_rollouts, physics_rollouts
+from bsms.rollouts.rollout import peak_memory_mb, summarize
+from bsms.rollouts.solver_runs import frame_dt, mass_scaling_factor, next_mass_scaling, run_solver, setting_label
 from bsms.run import EvaluateConfig, convert_fix, dataset_folder, load_model, resolve_device, saved_options, split_files
-from bsms.solver_runs import frame_dt, mass_scaling_factor, next_mass_scaling, run_solver, setting_label
 from datagen.atomic import atomic_path
 from datagen.compiled import cpu_summary
 from datagen.config import output_folder
@@ -414,6 +415,3 @@ def main(argv=None, prog: str = "python -m bsms.evaluate") -> int:
     print(f"report: {result['report']}")
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

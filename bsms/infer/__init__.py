@@ -44,14 +44,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from bsms import viz
 from bsms.checkpoint import CheckpointError
 from bsms.config import ConfigError
 from bsms.data import NodeType, Scenario
 from bsms.ensemble import spread as ensemble_spread
 from bsms.models.ensemble import Ensemble
-from bsms.motion import skill
-from bsms.rollout import DEFAULT_BOUND, body_size, rollout_metrics, rollouts
+from bsms.rollouts import viz
+from bsms.rollouts.motion import skill
+from bsms.rollouts.rollout import DEFAULT_BOUND, body_size, rollout_metrics, rollouts
 from bsms.run import load_model, resolve_device, run_dataset_config
 from datagen.atomic import atomic_path
 from datagen.compiled import cpu_summary
@@ -357,6 +357,3 @@ def _describe(summary: dict) -> str:
         line += "; the rollout went non-finite"
     return line
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

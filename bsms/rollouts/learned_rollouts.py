@@ -26,9 +26,9 @@ import numpy as np
 
 from bsms.data import GraphOptions, Scenario
 from bsms.fields import eulerian_state, initial_velocity, world_positions
-from bsms.motion import skill
-from bsms.rollout import DEFAULT_BOUND, body_size, eulerian_metrics, rollout_metrics, rollouts
-from bsms.solver_runs import free_nodes
+from bsms.rollouts.motion import skill
+from bsms.rollouts.rollout import DEFAULT_BOUND, body_size, eulerian_metrics, rollout_metrics, rollouts
+from bsms.rollouts.solver_runs import free_nodes
 
 __all__ = ["learned_rollouts", "end_to_end", "physics_rollouts", "PHYSICS_LABEL"]
 

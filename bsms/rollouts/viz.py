@@ -87,7 +87,7 @@ def error_curves(curves: dict[str, list[np.ndarray]], frame_dt: float, path, bou
 def speed_accuracy_chart(points: list[dict], path, ylabel: str = "rollout RMSE / body size",
                          rest: float | None = None) -> Path:
     """Wall seconds per simulated second (x) against rollout error (y), one labelled point per method,
-    with the Pareto front (:mod:`bsms.pareto`) as a step line.
+    with the Pareto front (:mod:`bsms.evaluate.pareto`) as a step line.
 
     points: dicts with ``label``, ``kind`` ("learned", "solver", or "ground_truth": the solver
     at the data's own settings, zero error, drawn as a vertical line at its cost),

@@ -3,14 +3,14 @@ describes.
 
 The run folder (:mod:`bsms.run`) gains ``metrics.csv`` (step, loss, lr, seconds, samples_per_s,
 valid_rmse; valid_vs_rest with rollout validation; and TensorBoard event files with
-``train.tensorboard``: :mod:`bsms.training_log`) and ``checkpoints/{latest,best}.pt``.
+``train.tensorboard``: :mod:`bsms.training.training_log`) and ``checkpoints/{latest,best}.pt``.
 Checkpoints hold the model with its normalisers, the optimiser, the scheduler, the step and the
 RNG states; they are written atomically and read with ``weights_only=True``. Ctrl-C (SIGINT)
 stops training after the step under way, with ``latest.pt`` saved at that step; a second Ctrl-C
 stops at once.
 
 Determinism: the samples of step ``s`` are a function of (seed, s) only (a per-epoch
-permutation, :mod:`bsms.batches`), and the training noise of a sample of (seed, s, index), so a
+permutation, :mod:`bsms.training.batches`), and the training noise of a sample of (seed, s, index), so a
 resumed run continues exactly and a batch split over processes sees the same noise as one
 process. Launched with ``torchrun --nproc_per_node K``, each process takes every K-th sample of
 the global batch (or, with ``train.shard``, holds a K-th of the training trajectories and draws
@@ -18,7 +18,7 @@ its part of the batch from them); gradients are summed over processes after each
 divided its squared error sum by the free-node count of the whole batch, which makes the update
 identical to one process on the whole batch (normaliser statistics are summed over processes
 too). Multi-step training
-(``train.unroll``) unrolls each sample over several model steps (:mod:`bsms.unroll`); the
+(``train.unroll``) unrolls each sample over several model steps (:mod:`bsms.training.unroll`); the
 validation RMSE stays one-step.
 """
 
@@ -38,7 +38,6 @@ import torch.distributed as dist
 import yaml
 from tqdm import tqdm
 
-from bsms.batches import Batches, shard_of
 from bsms.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_checkpoint
 from bsms.config import ConfigError, load, to_dict
 from bsms.data import FrameDataset
@@ -52,9 +51,10 @@ from bsms.run import (
     split_files,
     write_run_files,
 )
-from bsms.training_log import METRICS_FIELDS, TrainingLog, require_tensorboard
-from bsms.unroll import UnrollBatch, UnrollSamples, collate, unrolled_loss
-from bsms.validation import one_step_rmse, rollout_scores
+from bsms.training.batches import Batches, shard_of
+from bsms.training.training_log import METRICS_FIELDS, TrainingLog, require_tensorboard
+from bsms.training.unroll import UnrollBatch, UnrollSamples, collate, unrolled_loss
+from bsms.training.validation import one_step_rmse, rollout_scores
 from datagen.dataset import load as load_trajectory
 
 __all__ = ["Trainer", "TrainingDiverged", "lr_factor", "METRICS_FIELDS"]
@@ -183,7 +183,7 @@ class Trainer:
             raise ConfigError("config key 'train.validation' is 'rollout', but the dataset holds Eulerian fields "
                               f"({self.valid_set.spec.describe()}); validate them one step at a time (one_step)")
         self._valid_trajectories = None  # loaded at the first rollout validation
-        self.valid_vs_rest = None  # the last rollout validation's skill (bsms.motion)
+        self.valid_vs_rest = None  # the last rollout validation's skill (bsms.rollouts.motion)
         self.samples = UnrollSamples(self.train_set, config.train.unroll)  # (trajectory, t) with t + K <= T - 1
         t = config.train
         self.batches = Batches(len(self.samples), t.batch_size, t.seed, self.rank, self.world, t.shard,
@@ -307,7 +307,7 @@ class Trainer:
     # -- batches
     def global_batch(self, step: int) -> list[int]:
         """Sample indices of ``step``: the global batch (all processes), or this process's own
-        with ``train.shard`` (:class:`bsms.batches.Batches`)."""
+        with ``train.shard`` (:class:`bsms.training.batches.Batches`)."""
         return self.batches.drawn(step)
 
     def _loader(self, start: int, stop: int):
@@ -322,7 +322,7 @@ class Trainer:
 
     # -- one step
     def train_step(self, batch) -> float:
-        """One optimiser step on this process's part of the batch (an :class:`~bsms.unroll.UnrollBatch`,
+        """One optimiser step on this process's part of the batch (an :class:`~bsms.training.unroll.UnrollBatch`,
         or a PyG ``Batch`` of one-step samples), unrolled over ``train.unroll`` model steps (after
         ``train.unroll_warmup`` steps); returns the batch's loss."""
         self.model.train()
@@ -380,10 +380,10 @@ class Trainer:
             raise error
 
     def validate(self) -> float:
-        """One-step RMSE over the validation samples (:func:`~bsms.validation.one_step_rmse`); with
+        """One-step RMSE over the validation samples (:func:`~bsms.training.validation.one_step_rmse`); with
         ``train.validation: rollout`` the rollout RMSE over all steps and validation trajectories,
         its skill against predicting no motion kept as ``valid_vs_rest``
-        (:func:`~bsms.validation.rollout_scores`)."""
+        (:func:`~bsms.training.validation.rollout_scores`)."""
         self.model.eval()
         t = self.config.train
         if t.validation == "one_step":

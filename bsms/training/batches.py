@@ -1,4 +1,4 @@
-"""Which training samples each process draws at each step (:class:`bsms.trainer.Trainer`).
+"""Which training samples each process draws at each step (:class:`bsms.training.trainer.Trainer`).
 
 Whole (``train.shard: false``, the default): every process holds every training trajectory, and
 the samples of step ``s`` are a slice of a per-epoch permutation of all of them, a function of
