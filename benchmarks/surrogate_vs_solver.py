@@ -5,7 +5,7 @@ recipe is fixed; ``--split test`` the test split) of the pretrained model's data
 missing (the dataset config is the one beside the weights, ``dataset.json``), rolls the model out
 from frame 0 of every trajectory, and runs the MPM solver at the data's settings (the ground
 truth, the speed-up's baseline) and at every cheaper setting of
-:data:`bsms.solver_runs.SOLVER_SETTINGS` -- A-ULMPM ``adaptive`` and ``total`` where the data used
+:data:`bsms.rollouts.solver_runs.SOLVER_SETTINGS` -- A-ULMPM ``adaptive`` and ``total`` where the data used
 another reference, background meshes 1.5x and 2x coarser, fewer particles, larger time steps up to
 the stability limit, and where the drive is quasi-static mass scaling x10, x100, x1000, x3000 and
 on until the solver's error passes the model's -- and, for a model with the elastic input, that
@@ -26,10 +26,10 @@ with ``--docs``, copies the table and chart to ``docs/surrogate_vs_solver.md`` a
 
 S: the ground-truth solver's wall time over the model's, end to end for each new mesh (the
 model's per-mesh setup and its rollout of the mesh alone against the solver's setup and frames,
-its settling pre-roll apart; :mod:`bsms.learned_rollouts`); T: the same with the model's frames
+its settling pre-roll apart; :mod:`bsms.rollouts.learned_rollouts`); T: the same with the model's frames
 batched over all trajectories and its setup amortised; E: the model's rollout RMSE over all steps
 and free nodes relative to the body size (mean over trajectories); R: the mean over trajectories
-of that RMSE over the one of predicting no motion (``vs_rest``, :mod:`bsms.motion`: above 1 the
+of that RMSE over the one of predicting no motion (``vs_rest``, :mod:`bsms.rollouts.motion`: above 1 the
 model has learned nothing); U of N: unstable rollouts; the settings (names of SOLVER_SETTINGS,
 ``mass_scaling_S``, or ``elastic_answer`` for the physics-only row) that are both at least as fast
 and at least as accurate, one of them strictly. A line before it names the CPU (AVX2 / AVX-512).

@@ -131,7 +131,7 @@ def test_mass_scaling_goes_on_while_the_solver_is_more_accurate_than_the_model()
 # ----------------------------------------------------------------------------- the physics-only row
 def _answers_as_a_model_sees_them(trajectory, options: GraphOptions, frames: int) -> np.ndarray:
     """Frames 1..frames as the rest shape plus the elastic input of the graphs a from-rest model's
-    rollout builds (bsms.rollout: the body at rest, kinematic nodes with their coming step)."""
+    rollout builds (bsms.rollouts.rollout: the body at rest, kinematic nodes with their coming step)."""
     scenario = Scenario.from_trajectory(trajectory, options)
     n = scenario.n_body
     known = scenario.positions(np.where(scenario.kinematic[:n, None], trajectory.positions, scenario.rest_pos[:n]),

@@ -2,18 +2,18 @@
 
 On a split of the run's dataset (default: test, shapes never seen in training; ``final``: the
 held-out split, once per published model) every learned model is rolled out from frame 0 of
-every trajectory, and the MPM solver is run again (:mod:`bsms.solver_runs`) at the data's own
+every trajectory, and the MPM solver is run again (:mod:`bsms.rollouts.solver_runs`) at the data's own
 settings -- the ground truth: its re-run must reproduce the stored trajectory -- and at cheaper
 settings, mass scaling among them where the drive is quasi-static (on past x3000 while the most
 scaled run is still more accurate than the model). A model with the elastic input
 (``graph.elastic``) gets a row for that input alone (the physics-only answer,
-:func:`bsms.learned_rollouts.physics_rollouts`). Every method becomes one point (wall seconds per
+:func:`bsms.rollouts.learned_rollouts.physics_rollouts`). Every method becomes one point (wall seconds per
 simulated second end to end, rollout RMSE) of the speed-accuracy chart, timed in this same run on
 this same machine and the same CPU threads (the solver runs get the evaluation's thread count as
 solver.threads). ``speedup`` is end to end for a new mesh (the learned side's per-mesh setup
-included; :mod:`bsms.learned_rollouts`), ``speedup_throughput`` the batched figure with the
+included; :mod:`bsms.rollouts.learned_rollouts`), ``speedup_throughput`` the batched figure with the
 setup amortised, ``latency_ms`` one frame per call. Every row names the rows that dominate it
-(:mod:`bsms.pareto`: at least as fast and as accurate, strictly better in one); the chart draws
+(:mod:`bsms.evaluate.pareto`: at least as fast and as accurate, strictly better in one); the chart draws
 the Pareto front.
 
 Datasets converted from other sources (DeepMind's, the BSMS-GNN authors') have no scene for the
@@ -144,7 +144,7 @@ def _roll_out(results: _Results, methods, trajectories, cache_dir: Path, options
 
 
 def _end_to_end(metrics: dict, timed: dict, simulated: float) -> None:
-    """A learned rollout's metrics with its end-to-end timing (:func:`bsms.learned_rollouts.end_to_end`)
+    """A learned rollout's metrics with its end-to-end timing (:func:`bsms.rollouts.learned_rollouts.end_to_end`)
     over ``simulated`` seconds: ``seconds_per_sim_second`` becomes end to end, the batched figure
     ``throughput_seconds_per_sim_second``."""
     metrics["throughput_seconds_per_sim_second"] = metrics["seconds_per_sim_second"]
@@ -154,7 +154,7 @@ def _end_to_end(metrics: dict, timed: dict, simulated: float) -> None:
 
 def _run_solvers(results: _Results, trajectories, options: EvaluateConfig, progress: bool) -> None:
     """Every solver setting on every trajectory, on the threads the learned models were timed on;
-    results.solver keyed by each setting's label (:func:`bsms.solver_runs.setting_label`)."""
+    results.solver keyed by each setting's label (:func:`bsms.rollouts.solver_runs.setting_label`)."""
     done = [_solver_runs(trajectory, options) for trajectory in
             tqdm(trajectories, desc="solver runs", unit="traj", disable=not progress or not options.solver)]
     _collect_solver(results, done, options.solver)
@@ -165,7 +165,7 @@ def _run_solvers(results: _Results, trajectories, options: EvaluateConfig, progr
 
 def _solver_runs(trajectory, options: EvaluateConfig, settings=None) -> dict:
     """setting -> metrics of every solver setting (default: ``options.solver``) on one trajectory
-    (in order: later settings reuse earlier ones, :func:`bsms.solver_runs.run_solver`)."""
+    (in order: later settings reuse earlier ones, :func:`bsms.rollouts.solver_runs.run_solver`)."""
     done = {}
     for setting in options.solver if settings is None else settings:
         done[setting] = run_solver(trajectory, setting, _frames(trajectory, options), options.bound,
@@ -184,7 +184,7 @@ MASS_SCALING_LIMIT = 1_000_000
 
 
 def _more_mass_scaling(results: _Results) -> str | None:
-    """The next mass scaling to run (:func:`bsms.solver_runs.next_mass_scaling`) while the most
+    """The next mass scaling to run (:func:`bsms.rollouts.solver_runs.next_mass_scaling`) while the most
     scaled run so far is stable and more accurate (mean RMSE over the whole rollout) than the
     first learned model; None when it is not, or no mass scaling ran (skipped: no quasi-static drive)."""
     scaled = [(mass_scaling_factor(runs[0].get("setting")), runs) for runs in results.solver.values()

@@ -1,5 +1,5 @@
 """The evaluation's report: the metrics table (report.md, speed_accuracy.md and .csv), the
-at-rest baseline and the skill of every learned model per trajectory (:mod:`bsms.motion`)."""
+at-rest baseline and the skill of every learned model per trajectory (:mod:`bsms.rollouts.motion`)."""
 
 from __future__ import annotations
 
@@ -190,7 +190,7 @@ SKILL_COLUMNS = [
 
 def skill_table(label: str, metrics: list[dict], names: list[str] | None = None) -> str:
     """One learned model's skill per trajectory (then the mean): its error, the at-rest error,
-    their ratio, and both split into rigid and deformation parts (:mod:`bsms.motion`)."""
+    their ratio, and both split into rigid and deformation parts (:mod:`bsms.rollouts.motion`)."""
     names = names or [str(k) for k in range(len(metrics))]
     cols = [("trajectory", "trajectory"), *SKILL_COLUMNS]
     rows = [{"trajectory": name, **m} for name, m in zip(names, metrics, strict=True)]

@@ -14,7 +14,7 @@ for ParaView, ``prediction.gif`` and ``summary.json``. With ``--solver`` the MPM
 runs the same setup: ``solver.xdmf`` (+ .h5) holds its body nodes at the same frames (to put
 prediction and truth side by side in ParaView), and ``summary.json`` the error, the error of
 predicting no motion (``rest_rel_all``), their ratio ``vs_rest``, both split into rigid and
-deformation parts (:mod:`bsms.motion`), and the speed-up (the error is drawn in the GIF): ``speedup``
+deformation parts (:mod:`bsms.rollouts.motion`), and the speed-up (the error is drawn in the GIF): ``speedup``
 end to end for this new mesh -- ``solver_s`` (the solver from the scene to the last frame, its
 setup included, its settling pre-roll apart: ``solver_preroll_s``) over ``setup_s + learned_s``
 (placing the mesh and building its scenario: hierarchy, factorisations, outlines; then the

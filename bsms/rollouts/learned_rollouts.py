@@ -37,13 +37,14 @@ PHYSICS_LABEL = "physics only: linear-elastic contact answer (graph.elastic)"
 
 def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames: list[int],
                      bound: float = DEFAULT_BOUND, device="cpu", scenarios=None) -> list[tuple[dict, object]]:
-    """(metrics, :class:`~bsms.rollout.Rollout`) of ``model`` on each of ``trajectories``, rolled
+    """(metrics, :class:`~bsms.rollouts.rollout.Rollout`) of ``model`` on each of ``trajectories``, rolled
     out from frame 0 for ``frames`` steps each as one batch; graphs built by ``graph``, their
-    hierarchies cached in ``cache_dir``. Metrics: :func:`~bsms.rollout.rollout_metrics` (with
+    hierarchies cached in ``cache_dir``. Metrics: :func:`~bsms.rollouts.rollout.rollout_metrics` (with
     ``bound``, the relative error that marks a rollout unstable) and the skill measures of
-    :func:`bsms.motion.skill` (``rest_rel_all``, ``vs_rest``, rigid and deformation parts) for
-    Lagrangian data, :func:`~bsms.rollout.eulerian_metrics` for Eulerian data; timing in both. ``scenarios``: the
-    trajectories' scenarios if already built with ``graph`` (e.g. a dataset's), else built here."""
+    :func:`bsms.rollouts.motion.skill` (``rest_rel_all``, ``vs_rest``, rigid and deformation parts) for
+    Lagrangian data, :func:`~bsms.rollouts.rollout.eulerian_metrics` for Eulerian data; timing in
+    both. ``scenarios``: the trajectories' scenarios if already built with ``graph`` (e.g. a
+    dataset's), else built here."""
     spec = model.spec
     if scenarios is None:
         scenarios = [Scenario.from_trajectory(t, graph, cache_dir, spec=spec) for t in trajectories]
@@ -73,7 +74,7 @@ def _truths(spec, trajectories, frames: list[int]) -> list[np.ndarray]:
 
 
 def _roll(model, scenarios, trajectories, truths, frames: list[int], device, frames_per_call: int, warmup: int = 1):
-    """:func:`~bsms.rollout.rollouts` of ``model`` from frame 0 of each trajectory, driven by its
+    """:func:`~bsms.rollouts.rollout.rollouts` of ``model`` from frame 0 of each trajectory, driven by its
     stored kinematic motion, ``frames_per_call`` frames per call where they are independent."""
     spec = model.spec
     if spec.is_lagrangian:

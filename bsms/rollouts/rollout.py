@@ -86,7 +86,7 @@ class Rollout:
 
 def integrate(position, velocity, change, dt: float):
     """The learned step of free nodes: (x + dt v', v') with v' = v + dv, for numpy arrays or torch
-    tensors (multi-step training, :mod:`bsms.unroll`, integrates its own predictions with it)."""
+    tensors (multi-step training, :mod:`bsms.training.unroll`, integrates its own predictions with it)."""
     velocity = velocity + change
     return position + dt * velocity, velocity
 
@@ -317,7 +317,7 @@ def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_
     """
     device = torch.device(device)
     network_dtype(precision, device)  # a bad precision fails before any work
-    keep_freed_memory()  # each call's arrays reused, not paged in anew (bsms.memory)
+    keep_freed_memory()  # each call's arrays reused, not paged in anew (bsms.rollouts.memory)
     model = model.to(device).eval()
     n = len(scenarios)
     steps = [steps] * n if np.ndim(steps) == 0 else list(steps)

@@ -13,7 +13,7 @@ surrogate must beat on the speed-accuracy chart.
 
 Every run is timed end to end (``solver_s``: from the config to the last frame, its setup
 included, the settling pre-roll before frame 0 apart as ``preroll_s``), the footing of a learned
-model's end-to-end speed-up (:mod:`bsms.learned_rollouts`).
+model's end-to-end speed-up (:mod:`bsms.rollouts.learned_rollouts`).
 """
 
 from __future__ import annotations
@@ -206,7 +206,7 @@ def _failed(message: str, seconds: float, frames: int, trajectory) -> dict:
 
 def run_solver(trajectory, setting: str, frames: int, bound: float, threads: int | None = None,
                done: dict | None = None) -> dict:
-    """Metrics (:func:`bsms.rollout.rollout_metrics`) and timing of the solver at ``setting``
+    """Metrics (:func:`bsms.rollouts.rollout.rollout_metrics`) and timing of the solver at ``setting``
     over the first ``frames`` frames of ``trajectory``; {"skipped": why} without the knob.
 
     threads: torch CPU threads of the run (solver.threads; None: the data config's). done: the
@@ -214,7 +214,7 @@ def run_solver(trajectory, setting: str, frames: int, bound: float, threads: int
     ``stability_limit`` reuses (:func:`stability_limit`). Every result names its ``setting``;
     a run also gives its time step (``dt``, ``dt_factor``: over the data's, ``substeps``).
     """
-    keep_freed_memory()  # the footing of the learned rollouts it is timed against (bsms.memory)
+    keep_freed_memory()  # the footing of the learned rollouts it is timed against (bsms.rollouts.memory)
     if setting == "stability_limit":
         metrics = stability_limit(trajectory, frames, bound, threads, done)
     else:
