@@ -53,10 +53,7 @@ def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames
     out = []
     for scenario, trajectory, n, result, truth in zip(scenarios, trajectories, frames, results, truths, strict=True):
         if spec.is_lagrangian:
-            free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
-            predicted = result.positions[:, : scenario.n_body]
-            metrics = rollout_metrics(predicted, truth[: n + 1], free, size, bound)
-            metrics.update(skill(predicted, truth[: n + 1], free, size, metrics["rel_all"]))
+            metrics = _scored(result.positions[:, : scenario.n_body], truth[: n + 1], trajectory, bound)
         else:
             metrics = eulerian_metrics(spec, result.states, truth, free_nodes(trajectory), bound)
         metrics["seconds_per_step"] = result.seconds_per_step
@@ -64,6 +61,14 @@ def learned_rollouts(model, graph: GraphOptions, trajectories, cache_dir, frames
         metrics["graph_nodes_ratio"] = float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body
         out.append((metrics, result))
     return out
+
+
+def _scored(predicted: np.ndarray, truth: np.ndarray, trajectory, bound: float) -> dict:
+    """A Lagrangian rollout's errors on the trajectory's free body nodes and its skill against rest."""
+    free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
+    metrics = rollout_metrics(predicted, truth, free, size, bound)
+    metrics.update(skill(predicted, truth, free, size, metrics["rel_all"]))
+    return metrics
 
 
 def _truths(spec, trajectories, frames: list[int]) -> list[np.ndarray]:
@@ -138,10 +143,7 @@ def physics_rollouts(graph: GraphOptions, trajectories, frames: list[int], bound
         for state in states:
             _physics_answers(scenario, [state])
         per_frame = (time.perf_counter() - start) / max(1, n)
-        free, size = free_nodes(trajectory), body_size(trajectory.mesh.nodes)
-        predicted = np.concatenate([truth[:1], predicted])
-        metrics = rollout_metrics(predicted, truth, free, size, bound)
-        metrics.update(skill(predicted, truth, free, size, metrics["rel_all"]))
+        metrics = _scored(np.concatenate([truth[:1], predicted]), truth, trajectory, bound)
         metrics.update(setup_s=setup, learned_s=learned, seconds=setup + learned, latency_ms=1e3 * per_frame,
                        seconds_per_step=learned / max(1, n),
                        seconds_per_sim_second=(setup + learned) / (n * scenario.frame_dt))
