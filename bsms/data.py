@@ -449,8 +449,7 @@ class FrameDataset(NumberedSamples):
                 dx = free * np.random.default_rng(noise_seed).normal(0.0, self.noise.position, pos.shape)
                 pos += dx
                 target = target - dx / scenario.frame_dt
-            anchor = (scenario.rest_pos - pos) / scenario.frame_dt if self.options.displacement else 0.0
-            return pos, np.where(free, anchor, velocity), target
+            return pos, np.where(free, 0.0, velocity), target
         if noise_seed is not None and (self.noise.position > 0 or self.noise.velocity > 0):
             rng = np.random.default_rng(noise_seed)
             free = (scenario.node_type == NodeType.FREE)[:, None]

@@ -4,9 +4,9 @@ obstacles, constants, quasi-static learning) and the training noise (``noise.*``
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, ClassVar, Literal
 
-from bsms.config import ConfigError
+from bsms.config import ConfigError, Retired
 
 if TYPE_CHECKING:
     from bsms.fields import FieldSpec
@@ -50,11 +50,6 @@ class GraphOptions:
         Kinematic nodes keep the velocity of their coming step. Position noise is then undone
         in full by the target (``noise.gamma`` does not apply; ``noise.velocity`` must be 0).
         Lagrangian data only.
-    displacement: with ``quasi_static``, free nodes also see where they are: their velocity
-        input is (X - x_t) / dt, their displacement from the rest mesh X as a velocity over one
-        frame, instead of 0; the output stays their velocity over the coming frame. The model
-        then knows how far each node is from rest (not only the strain), which a body held in
-        place (bonded, clamped) returns to.
     from_rest: a learned solution operator for bodies held in place under a slow drive: free
         nodes enter every graph at their rest positions X with no velocity input, so that a
         frame's graph carries only the drive (the kinematic nodes where they are, with the
@@ -110,6 +105,13 @@ class GraphOptions:
         answer is added back to its output. Where the answer is right, the network's part is 0.
     """
 
+    # options measured and not adopted (docs/experiments.md): a saved run's config that gives one
+    # its default loads; any other value is an error naming it (bsms.config.without_retired)
+    RETIRED: ClassVar[dict[str, Retired]] = {
+        "displacement": Retired("with quasi_static, free nodes' displacement from rest as their velocity input",
+                                "false", "b28cc7d", lambda value, graph: value is False),
+    }
+
     levels: int = 4
     seeding: Literal["min_ave", "close_center", "random"] = "min_ave"
     self_loops: bool = True
@@ -122,7 +124,6 @@ class GraphOptions:
     self_contact: bool = False
     constants: list[str] = field(default_factory=list)
     quasi_static: bool = False
-    displacement: bool = False
     from_rest: bool = False
     penetration: bool = False
     push: Literal["nearest", "leading", "collider"] = "nearest"
@@ -133,9 +134,6 @@ class GraphOptions:
     elastic_residual: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
-        if self.displacement and not self.quasi_static:
-            raise ConfigError(f"config key '{prefix}.displacement' anchors quasi-static learning to the rest shape; "
-                              f"set '{prefix}.quasi_static: true' too, or '{prefix}.displacement: false'")
         if self.from_rest and self.quasi_static:
             raise ConfigError(f"config key '{prefix}.from_rest' predicts every frame from the rest shape and the "
                               f"drive, '{prefix}.quasi_static' steps from the frame before; set one of them to false")

@@ -133,7 +133,7 @@ class _Track:
 
     def state(self, t: int) -> tuple[np.ndarray, np.ndarray]:
         """(positions, velocities) frame t's graph is built from (Lagrangian, see :meth:`frame`)."""
-        velocity, kinematic = self._input(t), self.scenario.kinematic
+        velocity, kinematic = self._base(t), self.scenario.kinematic
         if kinematic.any():
             velocity = velocity.copy()
             velocity[kinematic] = 0.0 if self.known is None else \
@@ -155,15 +155,6 @@ class _Track:
         if not (options.quasi_static or options.from_rest):
             return self.velocities[t]
         return np.where(self.scenario.kinematic[:, None], self.velocities[t], 0.0)
-
-    def _input(self, t: int) -> np.ndarray:
-        """The velocity input of frame t's graph: the base (:meth:`_base`), except on free nodes
-        of an anchored model (``graph.displacement``): their velocity back to rest over a frame."""
-        base = self._base(t)
-        if not self.scenario.options.displacement:
-            return base
-        anchor = (self.scenario.rest_pos - self.positions[t]) / self.scenario.frame_dt
-        return np.where(self.scenario.kinematic[:, None], base, anchor)
 
     def advance(self, t: int, change: np.ndarray) -> None:
         """Frame t + 1 from frame t and the model's output (N, node_out) of every scenario node:

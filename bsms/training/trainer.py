@@ -39,9 +39,10 @@ import yaml
 from tqdm import tqdm
 
 from bsms.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_checkpoint
-from bsms.config import ConfigError, load, to_dict
+from bsms.config import ConfigError, load, to_dict, without_retired
 from bsms.data import FrameDataset
 from bsms.models.precision import cpu_has_bf16
+from bsms.options import GraphOptions
 from bsms.run import (
     Config,
     build_model,
@@ -64,7 +65,7 @@ _OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.work
                 "evaluate.batch", "train.tensorboard"}
 # Keys added after runs were saved, with the value that keeps what those runs did.
 _ADDED = {"dataset.kind": "mpm", "graph.contact_distance": None, "train.unroll": 1, "train.unroll_gradient": "last",
-          "train.unroll_warmup": 0, "graph.displacement": False, "graph.from_rest": False, "train.trajectories": None,
+          "train.unroll_warmup": 0, "graph.from_rest": False, "train.trajectories": None,
           "graph.penetration": False, "graph.clearance": False, "graph.drive": False, "train.rotate": 0.0,
           "graph.elastic": False, "graph.elastic_residual": False, "graph.push": "nearest",
           "graph.elastic_load": "force", "train.shard": False}
@@ -269,7 +270,9 @@ class Trainer:
         saved_path = self.run_dir / "config.yaml"
         if not saved_path.is_file():
             return
-        saved, now = {**_ADDED, **_flat(load(saved_path))}, _flat(to_dict(self.config))
+        saved = load(saved_path)  # less the keys retired since (an error where the run used one)
+        saved["graph"] = without_retired(GraphOptions, saved.get("graph") or {}, "graph")
+        saved, now = {**_ADDED, **_flat(saved)}, _flat(to_dict(self.config))
         changed = sorted(k for k in set(saved) | set(now) if k not in _OPERATIONAL and saved.get(k) != now.get(k))
         if changed:
             key = changed[0]

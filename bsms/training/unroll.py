@@ -136,9 +136,7 @@ def _advance(model, samples: UnrollSamples, states: list[_State], graph: LevelGr
         scenario, device = frames.scenarios[state.trajectory], state.pos.device
         dv = state.pos.new_zeros(state.pos.shape).index_copy(0, nodes, rows.to(state.pos.dtype))
         kinematic = torch.from_numpy(scenario.kinematic).to(device)[:, None]
-        base = state.velocity if not scenario.options.displacement else \
-            torch.where(kinematic, state.velocity, torch.zeros_like(state.velocity))  # the input was the anchor
-        pos, velocity = integrate(state.pos, base, dv, scenario.frame_dt)
+        pos, velocity = integrate(state.pos, state.velocity, dv, scenario.frame_dt)
         if not bool(torch.isfinite(pos).all() & torch.isfinite(velocity).all()):
             return None
         data_pos, data_velocity, data_target = (_tensor(a, device) for a in frames.sample_state(state.trajectory,
@@ -148,8 +146,6 @@ def _advance(model, samples: UnrollSamples, states: list[_State], graph: LevelGr
         pos, velocity = torch.where(kinematic, data_pos, pos), torch.where(kinematic, data_velocity, velocity)
         truth = _tensor(frames.positions[state.trajectory][frame + 1], device)
         target = torch.where(kinematic, data_target, (truth - pos) / scenario.frame_dt - velocity)
-        if scenario.options.displacement:  # free nodes' input: the velocity back to rest (bsms.data.GraphOptions)
-            velocity = torch.where(kinematic, velocity, (_tensor(scenario.rest_pos, device) - pos) / scenario.frame_dt)
         out.append(_State(state.trajectory, frame, pos, velocity, target))
     return out
 
