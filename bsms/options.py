@@ -80,12 +80,6 @@ class GraphOptions:
         else 0 (:class:`bsms.physics.penetration.Clearance`). What a floor's contact edges told the
         network (where the wall is) it gets per node, and a frame's graph keeps only the body and
         the other obstacles (on a press test frame the floor's contacts were a third of level 0's edges).
-    drive: with ``from_rest``, every node also gets its displacement from rest, x - X, as an input: 0
-        on the free nodes (at rest in every graph), on the obstacle nodes how far the drive has moved
-        them since the first frame. Where an indenter travels further than it is wide, the
-        penetration input saturates (a node deep inside sees the nearest side, not the depth) and
-        contact edges reach only the rest shape near where the indenter is; this tells every
-        node near it the whole travel.
     elastic: every node also gets, as an input, the body's first-order answer to the push: the
         linear-elastic displacement of its rest mesh (held where it touches the container, E = 1,
         the scene's Poisson ratio ``nu``) under forces along the penetration vectors, scaled to
@@ -110,6 +104,8 @@ class GraphOptions:
     RETIRED: ClassVar[dict[str, Retired]] = {
         "displacement": Retired("with quasi_static, free nodes' displacement from rest as their velocity input",
                                 "false", "b28cc7d", lambda value, graph: value is False),
+        "drive": Retired("with from_rest, every node's displacement from rest (the drive's travel) as an input",
+                         "false", "066728a", lambda value, graph: value is False),
     }
 
     levels: int = 4
@@ -128,7 +124,6 @@ class GraphOptions:
     penetration: bool = False
     push: Literal["nearest", "leading", "collider"] = "nearest"
     clearance: bool = False
-    drive: bool = False
     elastic: bool = False
     elastic_load: Literal["force", "contact"] = "force"
     elastic_residual: bool = False
@@ -137,10 +132,6 @@ class GraphOptions:
         if self.from_rest and self.quasi_static:
             raise ConfigError(f"config key '{prefix}.from_rest' predicts every frame from the rest shape and the "
                               f"drive, '{prefix}.quasi_static' steps from the frame before; set one of them to false")
-        if self.drive and not self.from_rest:
-            raise ConfigError(f"config key '{prefix}.drive' tells a model that predicts from rest how far the drive "
-                              f"has moved the obstacles; set '{prefix}.from_rest: true' too, or "
-                              f"'{prefix}.drive: false'")
         if self.elastic and not self.penetration:
             raise ConfigError(f"config key '{prefix}.elastic' loads the body where the obstacles reach into it; set "
                               f"'{prefix}.penetration: true' too, or '{prefix}.elastic: false'")

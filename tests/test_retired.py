@@ -21,8 +21,11 @@ RETIRED = [
     ({"quasi_static": True, "displacement": True},
      "config key 'graph.displacement' is retired (with quasi_static, free nodes' displacement from rest as their "
      "velocity input: measured and not adopted, docs/experiments.md); got true: leave it out (this version always "
-     "does what false did), or use the commit that has it: git checkout "
-     + GraphOptions.RETIRED["displacement"].commit),
+     "does what false did), or use the commit that has it: git checkout b28cc7d"),
+    ({"from_rest": True, "drive": True},
+     "config key 'graph.drive' is retired (with from_rest, every node's displacement from rest (the drive's travel) "
+     "as an input: measured and not adopted, docs/experiments.md); got true: leave it out (this version always does "
+     "what false did), or use the commit that has it: git checkout 066728a"),
 ]
 
 
@@ -38,7 +41,7 @@ def test_each_retired_option_names_the_commit_that_has_it():
 
 
 def test_a_retired_option_at_what_the_code_does_is_dropped():
-    graph = {"levels": 3, **{name: False for name in ("displacement",)}}
+    graph = {"levels": 3, **{name: False for name in ("displacement", "drive")}}
     config = build(Config, {"name": "a", "graph": graph})
     assert config.graph == GraphOptions(levels=3)
 
@@ -58,7 +61,7 @@ def test_a_saved_run_that_lists_the_retired_keys_resumes(tiny_dataset, tmp_path,
     trainer.fit(stop_at=2)
     saved = trainer.run_dir / "config.yaml"
     written = yaml.safe_load(saved.read_text())
-    written["graph"].update(displacement=False)  # as a run saved before the retirement lists it
+    written["graph"].update(displacement=False, drive=False)  # as a run saved before the retirements lists them
     saved.write_text(yaml.safe_dump(written))
     assert Trainer(load_config(data), resume=True).step == 2
     written["graph"].update(displacement=True)

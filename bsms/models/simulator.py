@@ -68,8 +68,6 @@ class LearnedSimulator(nn.Module):
         penetration: the graphs carry ``penetration`` (N, d), appended to the node inputs
             (``graph.penetration``, :mod:`bsms.physics.penetration`).
         clearance: the graphs carry ``clearance`` (N, d), appended after it (``graph.clearance``).
-        drive: every node's displacement from rest, pos - rest_pos (N, d), appended after them
-            (``graph.drive``: with ``graph.from_rest``, how far the drive has moved the obstacles).
         elastic: the graphs carry ``elastic`` (N, d), the body's linear-elastic answer to the
             penetration loads, appended last (``graph.elastic``, :mod:`bsms.physics.elastic`).
         elastic_residual: the network outputs the correction to that answer: the free nodes'
@@ -91,7 +89,7 @@ class LearnedSimulator(nn.Module):
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
                  core_options: dict | None = None, fields: FieldSpec | None = None, penetration: bool = False,
-                 clearance: bool = False, drive: bool = False, elastic: bool = False,
+                 clearance: bool = False, elastic: bool = False,
                  elastic_residual: bool = False, mirror_average: bool = False):
         super().__init__()
         if elastic_residual and not elastic:
@@ -107,10 +105,9 @@ class LearnedSimulator(nn.Module):
         self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
         self.mirror_average = mirror_average
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
-        self.penetration, self.clearance, self.drive, self.elastic = penetration, clearance, drive, elastic
+        self.penetration, self.clearance, self.elastic = penetration, clearance, elastic
         self.elastic_residual = elastic_residual
-        node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance) + int(drive)
-                                                                     + int(elastic))
+        node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance) + int(elastic))
         edge_dims = [spec.mesh_edge_dim] + ([spec.contact_edge_dim] if contact else [])
         self.core = build_core(core, node_in, spec.node_out, edge_dims, n_levels=n_levels, latent=latent,
                                n_passes=n_passes, hidden_layers=hidden_layers, options=dict(core_options or {}))
@@ -142,8 +139,6 @@ class LearnedSimulator(nn.Module):
                     raise ValueError(f"the model reads {what} ('{name}', graph.{name}), which this graph lacks; "
                                      f"build it with graph.{name}: true")
                 parts.append(graph[name])
-        if self.drive:
-            parts.append(graph.pos - graph.rest_pos)
         if self.elastic:
             if "elastic" not in graph:
                 raise ValueError("the model reads the body's elastic answer to the push ('elastic', graph.elastic), "
