@@ -4,6 +4,7 @@ import json
 import math
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import meshio
@@ -88,6 +89,8 @@ def check_speed(summary: dict, steps: int) -> None:
     assert summary["learned_s"] >= steps * summary["seconds_per_step"] * (1 - 1e-9)
     assert summary["cpu"] == cpu_summary()
     assert summary["model_load_s"] > 0 and summary["outputs_s"] > 0, "reported apart, not in the end-to-end time"
+    parts = summary["model_load_s"] + summary["setup_s"] + summary["learned_s"] + summary["outputs_s"]
+    assert summary["call_s"] >= parts, "the whole call holds every part timed apart"
 
 
 def read_positions(path: Path) -> np.ndarray:
@@ -183,7 +186,11 @@ def test_meshes_rolled_out_separately_as_one_batch(run_2d, tmp_path):
     for rollout_summary, name in zip(summary["rollouts"], ("ring", "a"), strict=True):
         assert rollout_summary["out"] == str(tmp_path / "apart" / name) and rollout_summary["steps"] == 2
         assert json.loads((tmp_path / "apart" / name / "summary.json").read_text())["nodes"] == rollout_summary["nodes"]
+    start = time.perf_counter()
     together = infer(run, meshes, steps=2, out=tmp_path / "together", progress=False)
+    wall = time.perf_counter() - start
+    assert together["call_s"] <= wall, "what a caller timing infer sees, no more"
+    assert together["call_s"] >= together["setup_s"] + together["learned_s"] + together["outputs_s"]
     assert together["nodes"] == [r["nodes"][0] for r in summary["rollouts"]], "one scene of both meshes"
     from bsms.infer import main
 

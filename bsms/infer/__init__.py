@@ -22,8 +22,10 @@ rollout as run, graph building included, no untimed warm-up) -- beside ``speedup
 (the rollout's frames batched, the setup not counted) and ``latency_ms`` (one frame per call, as a
 controller or an interactive user calls the model; over the first :data:`LATENCY_FRAMES` frames).
 Not in the end-to-end time, and reported apart: ``model_load_s`` (reading the weights, once per
-process) and ``outputs_s`` (writing the XDMF files and the GIF). ``cpu`` names the processor they
-were timed on.
+process) and ``outputs_s`` (writing the XDMF files and the GIF); ``call_s`` is the whole call up
+to this summary (all of the above, the latency measurement and any ensemble members' rollouts;
+the solver's run not counted), what a caller timing ``infer`` sees. ``cpu`` names the processor
+they were timed on.
 An ensemble folder (:mod:`bsms.ensemble`) answers with its members' mean, timed as such; each
 member is then also rolled out alone (untimed) and how far they disagree is reported: per node
 and frame the root mean square distance of the members' positions from their mean (``spread``
@@ -160,7 +162,7 @@ def _place(paths: list[Path], config, dconfig: dict, overrides: dict | None, ste
 
 
 def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder: Path, solver: bool,
-             bound: float, members=None, timing: dict | None = None) -> dict:
+             bound: float, members=None, timing: dict | None = None, started: float | None = None) -> dict:
     """What one rollout did (and, with ``solver``, its error and speed-up against the MPM solver;
     with ``members``, the rollouts of an ensemble's members alone, how far they disagree); writes
     its outputs and summary.json into ``folder``."""
@@ -182,8 +184,11 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
         spread, summary["spread_all"] = ensemble_spread(np.stack([m.positions[:, :n] for m in members]), free)
         summary.update(members=len(members), spread_rel_all=summary["spread_all"] / size)
     truth = None
+    solver_wall = 0.0
     if solver:
+        start = time.perf_counter()
         trajectory, summary["solver_cfl"] = simulate_stable(placed.sim_config)
+        solver_wall = time.perf_counter() - start
         summary["solver_s"] = float(trajectory.setup_time or 0.0) + trajectory.wall_time
         summary["solver_preroll_s"] = float(trajectory.preroll_time or 0.0)
         summary["solver_seconds_per_step"] = summary["solver_s"] / placed.steps
@@ -197,6 +202,8 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
     start = time.perf_counter()
     _write_outputs(folder, placed.scene, cells, predicted, truth, placed.frame_dt, placed.obstacle_path, spread)
     summary["outputs_s"] = time.perf_counter() - start
+    if started is not None:  # the whole call so far, the solver's run not counted
+        summary["call_s"] = time.perf_counter() - started - solver_wall
     with atomic_path(folder / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=float))
     return summary
@@ -235,9 +242,9 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     ``separately``, {"run", "out", "rollouts": the summary of each mesh}.
     """
     run_dir = Path(run_dir)
-    start = time.perf_counter()
+    started = time.perf_counter()
     model, config, state = load_model(run_dir, which)
-    loaded = time.perf_counter() - start
+    loaded = time.perf_counter() - started
     if config.dataset.kind != "mpm":
         raise InferError(f"run {run_dir} was trained on a converted {config.dataset.kind} dataset, not on an MPM "
                          f"family whose scene a mesh could be placed in; roll it out on its own data with "
@@ -272,7 +279,7 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     folders = _subfolders(folder, paths) if separately else [folder]
     summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound, alone,
                           {"setup_s": p.setup_s, "learned_s": learned, "latency_ms": 1e3 * one.seconds_per_step,
-                           "model_load_s": loaded})
+                           "model_load_s": loaded}, started)
                  for p, result, where, alone, one in zip(placed, results, folders, members, latency, strict=True)]
     if not separately:
         return summaries[0]
@@ -349,7 +356,8 @@ def _describe(summary: dict) -> str:
                  f"size; {summary['vs_rest']:.3g} of predicting no motion), speed-up {summary['speedup']:.3g}x end "
                  f"to end ({summary['speedup_throughput']:.3g}x throughput; the solver at CFL "
                  f"{summary['solver_cfl']:g}: {summary['solver_s']:.3g} s against {summary['setup_s']:.3g} s of "
-                 f"setup and {summary['learned_s']:.3g} s of rollout)")
+                 f"setup and {summary['learned_s']:.3g} s of rollout; the whole call {summary['call_s']:.3g} s with "
+                 f"loading the model, the latency measurement and writing the outputs, the solver's run not counted)")
     if "members" in summary:
         line += (f"; the mean of {summary['members']} members, who disagree by {summary['spread_rel_all']:.3g} "
                  f"of the body size")
