@@ -94,9 +94,6 @@ class GraphOptions:
         under the loaded nodes (on the press family's training bodies the data move 0.85-11 times
         as far as the forced answer, 0.23-1.28 times as far as the contact's: docs/press.md). Costs
         a solve per penetrating node.
-    elastic_residual: with ``elastic`` and ``from_rest``, the network learns the correction to that
-        answer: its target is the displacement less the answer (over the frame interval), and the
-        answer is added back to its output. Where the answer is right, the network's part is 0.
     """
 
     # options measured and not adopted (docs/experiments.md): a saved run's config that gives one
@@ -106,6 +103,8 @@ class GraphOptions:
                                 "false", "b28cc7d", lambda value, graph: value is False),
         "drive": Retired("with from_rest, every node's displacement from rest (the drive's travel) as an input",
                          "false", "066728a", lambda value, graph: value is False),
+        "elastic_residual": Retired("with elastic and from_rest, the network learning the correction to the elastic "
+                                    "answer", "false", "d26462a", lambda value, graph: value is False),
     }
 
     levels: int = 4
@@ -126,7 +125,6 @@ class GraphOptions:
     clearance: bool = False
     elastic: bool = False
     elastic_load: Literal["force", "contact"] = "force"
-    elastic_residual: bool = False
 
     def validate(self, prefix: str = "graph") -> None:
         if self.from_rest and self.quasi_static:
@@ -141,10 +139,6 @@ class GraphOptions:
         if self.push != "nearest" and not self.penetration:
             raise ConfigError(f"config key '{prefix}.push' says how the penetration input puts a node back; set "
                               f"'{prefix}.penetration: true' too, or leave '{prefix}.push' out")
-        if self.elastic_residual and not (self.elastic and self.from_rest):
-            raise ConfigError(f"config key '{prefix}.elastic_residual' corrects the elastic answer of a model that "
-                              f"predicts from rest; set '{prefix}.elastic: true' and '{prefix}.from_rest: true' too, "
-                              f"or '{prefix}.elastic_residual: false'")
         if self.clearance and not self.obstacles:
             raise ConfigError(f"config key '{prefix}.clearance' stands in for the container's obstacle nodes; set "
                               f"'{prefix}.obstacles: true' too, or '{prefix}.clearance: false'")

@@ -412,8 +412,7 @@ def build_model(config: Config, dim: int, fields: FieldSpec | None = None) -> Le
         n_constants=len(config.graph.constants), latent=config.model.latent, n_passes=config.model.passes,
         hidden_layers=config.model.hidden_layers, max_accumulations=config.train.normalizer_steps,
         core_options=config.model.core_options(dim), fields=fields, penetration=config.graph.penetration,
-        clearance=config.graph.clearance, elastic=config.graph.elastic,
-        elastic_residual=config.graph.elastic_residual, mirror_average=config.model.mirror_average,
+        clearance=config.graph.clearance, elastic=config.graph.elastic, mirror_average=config.model.mirror_average,
     )
 
 

@@ -70,10 +70,6 @@ class LearnedSimulator(nn.Module):
         clearance: the graphs carry ``clearance`` (N, d), appended after it (``graph.clearance``).
         elastic: the graphs carry ``elastic`` (N, d), the body's linear-elastic answer to the
             penetration loads, appended last (``graph.elastic``, :mod:`bsms.physics.elastic`).
-        elastic_residual: the network outputs the correction to that answer: the free nodes'
-            output is the elastic answer over the frame interval plus the network's (normalised
-            against the target less that answer; ``graph.elastic_residual``, a model predicting
-            from rest). Needs ``elastic``.
         latent: width of the latents.
         n_passes: message passes of meshgraphnets.
         hidden_layers: hidden layers of every MLP.
@@ -90,10 +86,8 @@ class LearnedSimulator(nn.Module):
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
                  core_options: dict | None = None, fields: FieldSpec | None = None, penetration: bool = False,
                  clearance: bool = False, elastic: bool = False,
-                 elastic_residual: bool = False, mirror_average: bool = False):
+                 mirror_average: bool = False):
         super().__init__()
-        if elastic_residual and not elastic:
-            raise ValueError("elastic_residual corrects the elastic answer: the model needs elastic=True too")
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
         spec = FieldSpec.lagrangian(dim) if fields is None else fields
@@ -106,7 +100,6 @@ class LearnedSimulator(nn.Module):
         self.mirror_average = mirror_average
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
         self.penetration, self.clearance, self.elastic = penetration, clearance, elastic
-        self.elastic_residual = elastic_residual
         node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance) + int(elastic))
         edge_dims = [spec.mesh_edge_dim] + ([spec.contact_edge_dim] if contact else [])
         self.core = build_core(core, node_in, spec.node_out, edge_dims, n_levels=n_levels, latent=latent,
@@ -233,40 +226,22 @@ class LearnedSimulator(nn.Module):
         :meth:`forward`.
         """
         if accumulate:
-            self.output_normalizer.accumulate(self.learned_target(graph)[graph.loss_mask])
+            self.output_normalizer.accumulate(graph.target[graph.loss_mask])
         return self.prediction_loss(self(graph, accumulate, precision), graph, reduction)
 
     def prediction_loss(self, prediction: Tensor, graph: LevelGraph, reduction: str = "mean") -> Tensor:
         """The loss of :meth:`loss` of a ``prediction`` (N, node_out) already made of ``graph``
         (multi-step training, :mod:`bsms.training.unroll`, goes on from the prediction it scores)."""
-        error = (prediction - self.output_normalizer(self.learned_target(graph))).square().sum(dim=-1)
+        error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)
         if "loss_weight" in graph:  # train.loss_weight (bsms.data.FrameDataset)
             error = error * graph.loss_weight
         error = error[graph.loss_mask]
         return error.sum() if reduction == "sum" else error.mean()
 
-    def baseline(self, graph: LevelGraph) -> Tensor | None:
-        """(N, d) what the output adds to the network's on free nodes, in the target's units:
-        the elastic answer over the frame interval (``elastic_residual``), else None."""
-        if not self.elastic_residual:
-            return None
-        if "elastic" not in graph:
-            raise ValueError("the model corrects the body's elastic answer to the push ('elastic', graph.elastic), "
-                             "which this graph lacks; build it with graph.elastic: true")
-        free = (graph.node_type == NodeType.FREE)[:, None]
-        return torch.where(free, graph.elastic.float() / graph.frame_dt[:, None], torch.zeros_like(graph.elastic))
-
-    def learned_target(self, graph: LevelGraph) -> Tensor:
-        """The target less :meth:`baseline`: what the network itself is trained to output."""
-        base = self.baseline(graph)
-        return graph.target if base is None else graph.target - base
-
-    def physical(self, prediction: Tensor, graph: LevelGraph) -> Tensor:
-        """The network's normalised ``prediction`` on ``graph`` in physical units, the
-        :meth:`baseline` added (non-free nodes as the network gives them)."""
-        change = self.output_normalizer.inverse(prediction)
-        base = self.baseline(graph)
-        return change if base is None else change + base
+    def physical(self, prediction: Tensor) -> Tensor:
+        """The network's normalised ``prediction`` in physical units (non-free nodes as the network
+        gives them)."""
+        return self.output_normalizer.inverse(prediction)
 
     @torch.no_grad()
     def velocity_change(self, graph: LevelGraph, precision: str = "f32") -> Tensor:
@@ -274,14 +249,14 @@ class LearnedSimulator(nn.Module):
         the velocity change of Lagrangian data, the spec's outputs of Eulerian data (the name
         predates specs); precision: as in :meth:`forward`."""
         if not self.mirror_average:
-            change = self.physical(self(graph, precision=precision), graph)
+            change = self.physical(self(graph, precision=precision))
         else:
             image = reflected(graph)
             paired = self._paired(graph, image, precision)
             ours, theirs = paired if paired is not None else (self(graph, precision=precision),
                                                               self(image, precision=precision))
-            change = self.physical(ours, graph)
-            change = 0.5 * (change + self.physical(theirs, image) * self._flip(change))
+            change = self.physical(ours)
+            change = 0.5 * (change + self.physical(theirs) * self._flip(change))
         return torch.where((graph.node_type == NodeType.FREE)[:, None], change, torch.zeros_like(change))
 
     def _paired(self, graph: LevelGraph, image: LevelGraph, precision: str) -> tuple[Tensor, Tensor] | None:
