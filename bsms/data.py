@@ -169,8 +169,7 @@ class Scenario:
             reach=ObstacleReach(n_body, body_id, radius, reach, options.self_contact, edges,
                                 excluded=None if clearance is None else clearance.excluded),
             type_codes=None if type_codes is None else np.asarray(type_codes, np.int64), obstacle_geometry=geometry,
-            penetration=_obstacle_input(Penetration, options.penetration, rest, geometry, n_body, source,
-                                        options.push),
+            penetration=_obstacle_input(Penetration, options.penetration, rest, geometry, n_body, source),
             clearance=clearance, elastic=elastic,
         )
 

@@ -66,14 +66,6 @@ class GraphOptions:
         outline's nearest point, else 0 (:mod:`bsms.physics.penetration`) -- the kinematic
         boundary condition an indenter imposes, which the network would otherwise have to
         infer from offsets to the obstacle's surface nodes. 2D (segment outlines) and 3D (triangles).
-    push: how ``penetration`` puts a node back: ``nearest``, the vector to the obstacle outline's
-        nearest point; ``leading``, to the nearest point of the facets that face the way the
-        obstacle has travelled from rest (outward normal . travel > 0), so that a node a box came
-        down onto goes down to its face, never sideways through a side that did not sweep over it
-        (:mod:`bsms.physics.penetration`). The same for a disk pressing straight (its leading half).
-        ``collider``: the push the data's solver gives, the nearest point's vector cut to the
-        obstacle's travel along it -- under a box's underside the depth, beside its sides only
-        its sideways travel, nothing where a side trails (a side passes material by).
     clearance: the container (the walls around the body) leaves every graph:
         no nodes of its own, no contact edges to them; each node gets instead, as an input, the
         vector from it to the container's nearest point where that is within the contact radius,
@@ -104,7 +96,10 @@ class GraphOptions:
         "drive": Retired("with from_rest, every node's displacement from rest (the drive's travel) as an input",
                          "false", "066728a", lambda value, graph: value is False),
         "elastic_residual": Retired("with elastic and from_rest, the network learning the correction to the elastic "
-                                    "answer", "false", "d26462a", lambda value, graph: value is False),
+                                    "answer", "false", "3ed6533", lambda value, graph: value is False),
+        "push": Retired("how the penetration input puts a node back: leading, through the facets that face the "
+                        "obstacle's travel; collider, as the data's solver pushes", "nearest", "fc6ef27",
+                        lambda value, graph: value == "nearest"),
     }
 
     levels: int = 4
@@ -121,7 +116,6 @@ class GraphOptions:
     quasi_static: bool = False
     from_rest: bool = False
     penetration: bool = False
-    push: Literal["nearest", "leading", "collider"] = "nearest"
     clearance: bool = False
     elastic: bool = False
     elastic_load: Literal["force", "contact"] = "force"
@@ -136,9 +130,6 @@ class GraphOptions:
         if self.elastic_load != "force" and not self.elastic:
             raise ConfigError(f"config key '{prefix}.elastic_load' says how the elastic input loads the body; set "
                               f"'{prefix}.elastic: true' too, or leave '{prefix}.elastic_load' out")
-        if self.push != "nearest" and not self.penetration:
-            raise ConfigError(f"config key '{prefix}.push' says how the penetration input puts a node back; set "
-                              f"'{prefix}.penetration: true' too, or leave '{prefix}.push' out")
         if self.clearance and not self.obstacles:
             raise ConfigError(f"config key '{prefix}.clearance' stands in for the container's obstacle nodes; set "
                               f"'{prefix}.obstacles: true' too, or '{prefix}.clearance: false'")

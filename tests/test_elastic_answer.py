@@ -61,26 +61,6 @@ def test_a_split_without_trajectories_is_refused(pressed, capsys):
     assert f"error: dataset folder {pressed} has no valid trajectories" in capsys.readouterr().err
 
 
-def test_each_push_is_a_row_and_leading_is_the_input_of_graph_push_leading(pressed, capsys):
-    assert elastic_answer.main(["--data", str(pressed), "--push", "leading", "nearest"]) == 0
-    lines = capsys.readouterr().out.strip().splitlines()
-    assert lines[0] == "| hold (median edges), push | vs at rest (per trajectory) | RMSE all / body size |"
-    assert [line.split("|")[1].strip() for line in lines[2:4]] == ["1, leading", "1, nearest"]
-    vs = []
-    for path in split_files(pressed, "test"):
-        trajectory = load(path)
-        scenario = Scenario.from_trajectory(trajectory, GraphOptions(levels=1, from_rest=True, penetration=True,
-                                                                     elastic=True, push="leading"))
-        n, free = scenario.n_body, np.arange(scenario.n_nodes) < scenario.n_body
-        predicted = np.empty_like(trajectory.positions)
-        for k, obstacles in enumerate(trajectory.obstacle_positions):
-            pos = scenario.positions(scenario.rest_pos[:n], obstacles)
-            predicted[k] = scenario.rest_pos[:n] + scenario.elastic(scenario.penetration(pos, pos, free))[:n]
-        vs.append(score(predicted, trajectory, FieldSpec.lagrangian(2))["vs_rest"])
-    assert lines[2].split("|")[2].strip() == f"{np.mean(vs):.3g} ({', '.join(f'{v:.2f}' for v in vs)})"
-    assert lines[-1].startswith(f"elastic answer: vs at rest {np.mean(vs):.3g} on 2 trajectories (hold 1 edges), ")
-
-
 def test_the_scale_table_gives_the_factor_that_best_fits_each_answer_to_its_data(pressed, capsys):
     assert elastic_answer.main(["--data", str(pressed), "--load", "force", "contact", "--scale"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
@@ -91,7 +71,7 @@ def test_the_scale_table_gives_the_factor_that_best_fits_each_answer_to_its_data
         factors = []
         for path in split_files(pressed, "test"):
             trajectory = load(path)
-            predicted, _ = elastic_answer.answers(trajectory, 1.0, "nearest", load_)
+            predicted, _ = elastic_answer.answers(trajectory, 1.0, load_)
             factor = elastic_answer.best_scale(predicted, trajectory, spec)
             # the best factor: the fit's residual grows either way off it
             truth = trajectory.positions - trajectory.positions[:1]

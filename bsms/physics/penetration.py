@@ -9,21 +9,6 @@ at the coming frame (winding number), and if so the vector to the nearest point 
 -- the displacement that would put the node back on the obstacle's surface, the kinematic
 boundary condition of contact. Nodes outside every obstacle get 0.
 
-``push="leading"`` (``graph.push``) takes the nearest point among the outline's facets that face
-the way the obstacle has travelled since rest only (outward normal . travel > 0): a box pressed
-deeper than a node lies from its side pushes that node down to its face, as the face that swept
-over it did, not sideways out through the side it never crossed (docs/press.md at 8757482, "The way the
-indenter came").
-
-``push="collider"`` is the push the data's solver gives (:class:`datagen.mpm.colliders.Collider`):
-the nearest point's vector v, but no longer than the obstacle's travel since rest along it,
-v min(1, max(0, travel . v / |v|^2)). The solver's collider acts on a background node inside it
-along the nearest face's normal n, and only on material moving into that face, so it moves
-material along n by the travel along n at most: under a box's underside the whole depth, beside
-its sides only as far as the box moved sideways, and nothing where a side trails -- material a
-side passes by is left where it was (docs/press.md at 8757482, "What the solver's box does at its corners").
-An obstacle that has not moved pushes as ``nearest``.
-
 Outlines are the connected components of the (subdivided) obstacle facets -- segments in 2D,
 triangles in 3D; a component is a container when it encloses most of the body's rest nodes
 (the box's walls), and it is then left out: a body is inside its container by design.
@@ -38,7 +23,7 @@ from scipy.spatial import cKDTree
 
 from bsms.graph.obstacles import KeptTree
 
-__all__ = ["PUSHES", "Penetration", "Clearance", "outlines", "winding_numbers", "inside_outline", "closest_points",
+__all__ = ["Penetration", "Clearance", "outlines", "winding_numbers", "inside_outline", "closest_points",
            "solid_winding_numbers", "closest_points_3d", "closest_on_facets"]
 
 
@@ -176,87 +161,26 @@ class Penetration:
 
     rest: (N, d) rest positions of all scenario nodes; facets: (F, d) obstacle segments (2D) or
     triangles (3D) in scenario node indices; n_body: body node count (nodes before it are the
-    body's); push: ``nearest``, ``leading`` or ``collider`` (``graph.push``, the module's docstring)."""
+    body's)."""
 
-    def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int, push: str = "nearest"):
-        if push not in PUSHES:
-            raise ValueError(f"graph.push must be one of {', '.join(PUSHES)}, got {push!r}")
+    def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int):
         self.outlines, _ = outlines(rest, facets, n_body)
-        self.push = push
-        rest = np.asarray(rest, np.float64)
-        # per outline: its nodes and their rest centroid (how far it travelled: "leading", "collider"),
-        # and the signs that turn its facets' normals outward ("leading")
-        moves, leading = push != "nearest", push == "leading"
-        self._nodes = [np.unique(o) if moves else None for o in self.outlines]
-        self._rest_centres = [rest[n].mean(0) if moves else None for n in self._nodes]
-        self._outward = [_outward_signs([rest[o[:, i]] for i in range(o.shape[1])]) if leading else None
-                         for o in self.outlines]
 
     def __call__(self, pos: np.ndarray, coming: np.ndarray, free: np.ndarray) -> np.ndarray:
         """(N, d): for free nodes at ``pos`` inside an obstacle outline placed at ``coming`` (N, d:
         where every node will be at the coming frame; only obstacle rows are read), the vector to
-        the outline's nearest point (``push="leading"``: of its facets facing the way it travelled
-        from rest; ``push="collider"``: the nearest point's vector cut to the travel along it); 0
-        elsewhere."""
+        the outline's nearest point; 0 elsewhere."""
         out = np.zeros_like(pos, dtype=np.float64)
         points = np.flatnonzero(free)
-        for outline, nodes, centre, outward in zip(self.outlines, self._nodes, self._rest_centres, self._outward,
-                                                   strict=True):
+        for outline in self.outlines:
             corners = [coming[outline[:, i]] for i in range(outline.shape[1])]
             low, high = coming[outline.ravel()].min(0), coming[outline.ravel()].max(0)
             near = points[np.all((pos[points] >= low) & (pos[points] <= high), axis=1)]  # only these can be inside
             inside = near[_inside(pos[near], corners)]
             if not len(inside):
                 continue
-            travel = coming[nodes].mean(0) - centre if self.push != "nearest" else None
-            if self.push == "leading":
-                corners = _leading(corners, outward, travel, high - low)
-            push = closest_on_facets(pos[inside], corners) - pos[inside]
-            if self.push == "collider" and _moved(travel, high - low):
-                depth2 = np.maximum((push * push).sum(1), np.finfo(float).tiny)
-                push *= np.clip(push @ travel / depth2, 0.0, 1.0)[:, None]
-            out[inside] += push
+            out[inside] += closest_on_facets(pos[inside], corners) - pos[inside]
         return out
-
-
-PUSHES = ("nearest", "leading", "collider")
-
-
-def _normals(corners: list[np.ndarray]) -> np.ndarray:
-    """(S, d) a normal of each facet (segments in 2D, triangles in 3D), of either sense, unnormalised."""
-    if len(corners) == 2:
-        edge = corners[1] - corners[0]
-        return np.stack([edge[:, 1], -edge[:, 0]], axis=1)
-    return np.cross(corners[1] - corners[0], corners[2] - corners[0])
-
-
-def _outward_signs(corners: list[np.ndarray]) -> np.ndarray:
-    """(S,) +1 where :func:`_normals` points out of the closed outline, -1 where it points in: a
-    point just off each facet's middle along its normal lies outside. Kept from rest: an obstacle
-    that moves rigidly keeps its facets' senses."""
-    normals = _normals(corners)
-    unit = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), np.finfo(float).tiny)
-    points = np.concatenate(corners)
-    step = 1e-6 * float(np.ptp(points, axis=0).max())
-    probe = sum(corners) / len(corners) + step * unit
-    inside = np.concatenate([_inside(probe[k:k + 256], corners) for k in range(0, len(probe), 256)])
-    return np.where(inside, -1.0, 1.0)  # in blocks: a 3D test holds (probes, facets, 3) at once
-
-
-def _moved(travel: np.ndarray, extent: np.ndarray) -> bool:
-    """Whether an outline of ``extent`` has moved from rest by ``travel`` (more than a millionth of it)."""
-    return bool(np.linalg.norm(travel) > 1e-6 * float(np.max(extent)))
-
-
-def _leading(corners: list[np.ndarray], outward: np.ndarray, travel: np.ndarray, extent: np.ndarray
-             ) -> list[np.ndarray]:
-    """The facets of ``corners`` whose outward normal has a positive part along ``travel`` (how far
-    the outline's centre has moved from rest); all of them where it has not moved (by a millionth
-    of its ``extent``)."""
-    if not _moved(travel, extent):
-        return corners
-    facing = outward * (_normals(corners) @ travel) > 0
-    return [c[facing] for c in corners]
 
 
 class Clearance:

@@ -67,7 +67,7 @@ _OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.work
 _ADDED = {"dataset.kind": "mpm", "graph.contact_distance": None, "train.unroll": 1, "train.unroll_gradient": "last",
           "train.unroll_warmup": 0, "graph.from_rest": False, "train.trajectories": None,
           "graph.penetration": False, "graph.clearance": False, "train.rotate": 0.0,
-          "graph.elastic": False, "graph.push": "nearest",
+          "graph.elastic": False,
           "graph.elastic_load": "force", "train.shard": False}
 
 
