@@ -2,27 +2,22 @@
 
 For each trajectory of a split, every frame is predicted as the rest shape plus the input
 ``graph.elastic`` gives a model (:mod:`bsms.physics.elastic`: linear elasticity on the rest mesh,
-held where it touches the container, loaded along the penetration vectors of the indenter at
-that frame, scaled to them) -- no learning. It is the trivial answer a model with that input
-has to beat, scored as learned rollouts are (``vs at rest``: RMSE over all steps over the
+held where it touches the container, pushed along the penetration vectors of the indenter at
+that frame as a frictionless contact) -- no learning. It is the trivial answer a model with that
+input has to beat, scored as learned rollouts are (``vs at rest``: RMSE over all steps over the
 at-rest RMSE; RMSE all relative to the body size). One row per hold distance (in median rest
-edges; the first is the input's) and per
-``--load`` (``graph.elastic_load``: ``force``, the scaled answer to forces along the pushes, or
-``contact``, the answer with every pushed node moved by its push); where more than one is given,
-each row names it. ``--scale`` adds a table of the factor that best scales each trajectory's
-answer to its data (1: the answer's size is right). Ends with exactly (for the first hold and
-load)
+edges; the first is the input's). ``--scale`` adds a table of the factor that best scales each
+trajectory's answer to its data (1: the answer's size is right). Ends with exactly (for the
+first hold)
 
     elastic answer: vs at rest E on N trajectories (hold H edges), P ms per frame
 
-    python benchmarks/elastic_answer.py --data data/press_stiff [--split test] [--hold 1.0 0.05 0.5]
-        [--load force contact] [--scale]
+    python benchmarks/elastic_answer.py --data data/press_stiff [--split test] [--hold 1.0 0.05 0.5] [--scale]
 """
 
 from __future__ import annotations
 
 import argparse
-import itertools
 import os
 import time
 from pathlib import Path
@@ -36,23 +31,22 @@ from bsms.config import ConfigError  # noqa: E402
 from bsms.data import Scenario  # noqa: E402
 from bsms.fields import FieldSpec, world_positions  # noqa: E402
 from bsms.options import GraphOptions  # noqa: E402
-from bsms.physics.elastic import HOLD, LOADS, ElasticResponse  # noqa: E402
+from bsms.physics.elastic import HOLD, ElasticResponse  # noqa: E402
 from bsms.rollouts.solver_runs import free_nodes  # noqa: E402
 from bsms.run import split_files  # noqa: E402
 from datagen.dataset import load  # noqa: E402
 
 
-def answers(trajectory, hold: float, load_: str = "force") -> tuple[np.ndarray, float]:
+def answers(trajectory, hold: float) -> tuple[np.ndarray, float]:
     """(T, N, d) the rest shape plus the elastic answer at every frame, and the seconds per frame
     it took (penetration and solve, all frames together as a rollout builds them; the
-    factorisation, once per mesh, not counted). ``load_``:
-    graph.elastic_load, ``force`` or ``contact``."""
+    factorisation, once per mesh, not counted)."""
     options = GraphOptions(levels=1, from_rest=True, penetration=True)
     scenario = Scenario.from_trajectory(trajectory, options)
     n = scenario.n_body
     elastic = ElasticResponse(scenario.rest_pos, scenario.obstacle_geometry.facets + n, n, scenario.cells,
                               trajectory.config["params"].get("nu"), float(np.median(trajectory.mesh.edge_lengths)),
-                              hold, load_)
+                              hold)
     free = np.arange(scenario.n_nodes) < n
     out = np.empty_like(trajectory.positions)
     start = time.perf_counter()
@@ -84,8 +78,6 @@ def main(argv=None) -> int:
     parser.add_argument("--trajectories", type=int, default=None, help="at most this many (default: all)")
     parser.add_argument("--hold", type=float, nargs="+", default=[HOLD],
                         help=f"hold distances in median rest edges, the first reported last (default: {HOLD})")
-    parser.add_argument("--load", nargs="+", default=["force"], choices=LOADS,
-                        help="how the answer loads the body (graph.elastic_load; default: force)")
     parser.add_argument("--scale", action="store_true",
                         help="also print, per row, the factor that best scales the answer to the data per trajectory")
     args = parser.parse_args(argv)
@@ -97,24 +89,23 @@ def main(argv=None) -> int:
     if any(t.obstacle_positions is None for t in trajectories):
         parser.error(f"{args.data}: the elastic answer needs moving obstacles (an indenter) to load the body")
     spec = FieldSpec.lagrangian(trajectories[0].mesh.dim)
-    axes = ["load"] if len(args.load) > 1 else []
-    print(f"| {', '.join(['hold (median edges)', *axes])} | vs at rest (per trajectory) | RMSE all / body size |")
+    print("| hold (median edges) | vs at rest (per trajectory) | RMSE all / body size |")
     print("|---|---|---|")
     summary, scales = None, []
-    for hold, load_ in itertools.product(args.hold, args.load):
+    for hold in args.hold:
         scored, seconds, factors = [], [], []
         for trajectory in trajectories:
-            predicted, per_frame = answers(trajectory, hold, load_)
+            predicted, per_frame = answers(trajectory, hold)
             scored.append(score(predicted, trajectory, spec))
             seconds.append(per_frame)
             factors.append(best_scale(predicted, trajectory, spec))
-        label = ", ".join([f"{hold:g}", *([load_] if axes else [])])
+        label = f"{hold:g}"
         print(row(label, scored), flush=True)
         scales.append(f"| {label} | {np.median(factors):.3g} ({', '.join(f'{f:.2f}' for f in factors)}) |")
         if summary is None:
             summary = (np.mean([m["vs_rest"] for m in scored]), hold, 1e3 * np.mean(seconds))
     if args.scale:
-        print(f"\n| {', '.join(['hold (median edges)', *axes])} | data / answer, median (per trajectory) |")
+        print("\n| hold (median edges) | data / answer, median (per trajectory) |")
         print("|---|---|")
         print("\n".join(scales))
     vs, hold, ms = summary

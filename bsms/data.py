@@ -161,7 +161,7 @@ class Scenario:
         reach = None if options.obstacle_margin is None else radius + options.obstacle_margin * edge_length
         clearance = _obstacle_input(Clearance, options.clearance, rest, geometry, n_body, source, radius)
         elastic = _obstacle_input(ElasticResponse, options.elastic, rest, geometry, n_body, source, mesh.cells,
-                                  (params or {}).get("nu"), edge_length, HOLD, options.elastic_load)
+                                  (params or {}).get("nu"), edge_length, HOLD)
         return cls(
             rest_pos=rest, node_type=node_type, body_id=body_id, edges=edges, cells=mesh.cells, n_body=n_body,
             hierarchy=hierarchy, constants=constants, frame_dt=float(frame_dt), contact_radius=radius,

@@ -74,18 +74,12 @@ class GraphOptions:
         the other obstacles (on a press test frame the floor's contacts were a third of level 0's edges).
     elastic: every node also gets, as an input, the body's first-order answer to the push: the
         linear-elastic displacement of its rest mesh (held where it touches the container, E = 1,
-        the scene's Poisson ratio ``nu``) under forces along the penetration vectors, scaled to
-        match them where they act (:mod:`bsms.physics.elastic`) -- how far a push moves the far end
-        of a thin arm, which the network would otherwise infer from the mesh alone. Needs
-        ``penetration`` (its loads) and simplex body meshes.
-    elastic_load: how ``elastic`` loads the body: ``force``, forces along the penetration
-        vectors, the response scaled to match them where they act; ``contact``, every penetrating
-        node moved along its vector by its length (free to slide across it, released where the
-        contact would pull: :meth:`~bsms.physics.elastic.ElasticResponse.constrained`), unscaled --
-        a contact's answer, which carries the push into the body where a force concentrates it
-        under the loaded nodes (on the press family's training bodies the data move 0.85-11 times
-        as far as the forced answer, 0.23-1.28 times as far as the contact's: docs/press.md). Costs
-        a solve per penetrating node.
+        the scene's Poisson ratio ``nu``) as a frictionless contact along the penetration vectors
+        gives it -- every penetrating node moved along its vector by its length, free to slide
+        across it, released where the contact would pull, unscaled
+        (:meth:`~bsms.physics.elastic.ElasticResponse.constrained`): how far a push moves the far
+        end of a thin arm, which the network would otherwise infer from the mesh alone. Needs
+        ``penetration`` (its loads) and simplex body meshes; costs a solve per penetrating node.
     """
 
     # options measured and not adopted (docs/experiments.md): a saved run's config that gives one
@@ -100,6 +94,9 @@ class GraphOptions:
         "push": Retired("how the penetration input puts a node back: leading, through the facets that face the "
                         "obstacle's travel; collider, as the data's solver pushes", "nearest", "fc6ef27",
                         lambda value, graph: value == "nearest"),
+        "elastic_load": Retired("force: the elastic input loaded by forces along the pushes, its answer scaled to "
+                                "them", "contact", "4a6f103", lambda value, graph: value == "contact" or (
+                                    value == "force" and not graph.get("elastic"))),  # then it did nothing
     }
 
     levels: int = 4
@@ -118,7 +115,6 @@ class GraphOptions:
     penetration: bool = False
     clearance: bool = False
     elastic: bool = False
-    elastic_load: Literal["force", "contact"] = "force"
 
     def validate(self, prefix: str = "graph") -> None:
         if self.from_rest and self.quasi_static:
@@ -127,9 +123,6 @@ class GraphOptions:
         if self.elastic and not self.penetration:
             raise ConfigError(f"config key '{prefix}.elastic' loads the body where the obstacles reach into it; set "
                               f"'{prefix}.penetration: true' too, or '{prefix}.elastic: false'")
-        if self.elastic_load != "force" and not self.elastic:
-            raise ConfigError(f"config key '{prefix}.elastic_load' says how the elastic input loads the body; set "
-                              f"'{prefix}.elastic: true' too, or leave '{prefix}.elastic_load' out")
         if self.clearance and not self.obstacles:
             raise ConfigError(f"config key '{prefix}.clearance' stands in for the container's obstacle nodes; set "
                               f"'{prefix}.obstacles: true' too, or '{prefix}.clearance: false'")
@@ -154,8 +147,9 @@ class GraphOptions:
 
 
 # Graph options added after runs were saved with the behaviour before them: a saved run that
-# lacks one was trained with this value (the new default applies to new runs only).
-_BEFORE = {"obstacle_margin": None}
+# lacks one was trained with this value (the new default applies to new runs only; a retired
+# value is then the error that names it).
+_BEFORE = {"obstacle_margin": None, "elastic_load": "force"}
 
 
 def saved_graph_options(graph: dict | None) -> dict:

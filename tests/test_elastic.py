@@ -11,7 +11,7 @@ from test_penetration import _scene
 from bsms.config import ConfigError
 from bsms.data import GraphOptions, NodeType, Scenario
 from bsms.models.simulator import LearnedSimulator
-from bsms.physics.elastic import HOLD, ElasticResponse, held_nodes, nodal_measures, stiffness
+from bsms.physics.elastic import HOLD, ElasticResponse, held_nodes, stiffness
 from bsms.run import load_config, prepare_dataset
 from bsms.training.trainer import Trainer
 
@@ -72,7 +72,6 @@ def test_the_stiffness_passes_the_patch_test_and_stores_the_closed_form_energy(d
     spin = np.zeros_like(nodes)  # nor does an infinitesimal rotation about the last axis
     spin[:, 0], spin[:, 1] = -nodes[:, 1], nodes[:, 0]
     assert np.abs(k @ spin.ravel()).max() < 1e-12 * abs(k).max()
-    np.testing.assert_allclose(nodal_measures(nodes, cells).sum(), measure, rtol=1e-13)
 
 
 def test_bad_materials_and_meshes_are_named():
@@ -121,23 +120,6 @@ def _response(rest, facets, n_body, cells, push_along=(0.0, -0.02)):
     push = np.zeros_like(rest)
     push[:n_body][(y > -1e-9) & (x > 0.3) & (x < 0.7)] = push_along
     return elastic, push, elastic(push)
-
-
-def test_a_held_body_answers_linearly_and_matches_the_push_where_it_acts():
-    body, rest, facets, n_body, _ = _on_the_floor()
-    elastic, push, out = _response(rest, facets, n_body, body.cells)
-    assert len(elastic.held) >= 10 and not out[elastic.held].any() and not out[n_body:].any()
-    loaded = np.flatnonzero(np.any(push != 0, axis=1))
-    assert len(loaded) >= 3
-    # the scale is the least-squares fit of the loaded nodes to their push
-    u, p = out[loaded], push[loaded]
-    np.testing.assert_allclose((u * (p - u)).sum(), 0.0, atol=1e-12 * (p * p).sum())
-    assert (u * p).sum() > 0.5 * (p * p).sum() and out[:n_body, 1].min() < 0  # pushed down where pushed
-    np.testing.assert_allclose(elastic(2.5 * push), 2.5 * out, rtol=0, atol=1e-14)  # linear, scale-free
-    assert not elastic(0 * push).any()
-    assert (out[loaded, 1] < 0).all()  # every node under the punch sinks; the answer fades towards the floor
-    y, size = rest[:n_body, 1], np.linalg.norm(out[:n_body], axis=1)
-    assert size[y > -0.25].mean() > 3 * size[y < -0.75].mean()
 
 
 def test_the_answer_turns_with_the_scene():
@@ -240,26 +222,6 @@ def test_a_3d_body_is_held_on_its_floor_and_answers_the_push():
     push[top] = [0.0, 0.0, -0.01]
     out = elastic(push)
     assert not out[elastic.held].any() and not out[n_body:].any()
-    u, p = out[top], push[top]
-    np.testing.assert_allclose((u * (p - u)).sum(), 0.0, atol=1e-12 * (p * p).sum())
     assert (out[top, 2] < 0).all() and np.abs(out[:n_body]).max() == np.abs(out[top]).max()
 
 
-def test_frames_built_together_solve_once_and_equal_frames_built_alone():
-    scenario, rest, facets, n_body, punch = _scenario(penetration=True, elastic=True)
-    states = []
-    for depth in (0.0, 0.1, 0.15, 0.2):  # the punch starts 0.05 above the body
-        velocity = np.zeros_like(rest)
-        velocity[punch] = [0.0, -10 * depth]  # the punch's coming step
-        states.append((scenario.rest_pos, velocity))
-    solves = []
-    factor = scenario.elastic._solver()
-    scenario.elastic._factor = type("Counted", (), {"solve": lambda self, b: solves.append(b.shape) or factor.solve(b)})()
-    together = scenario.frames(states)
-    assert solves == [(len(scenario.elastic.free_dofs), 3)], "one solve for the three loaded frames"
-    alone = [scenario.frame(*state) for state in states]
-    for a, b in zip(together, alone, strict=True):
-        assert a.nodes.keys() == b.nodes.keys()
-        np.testing.assert_array_equal(a.nodes["penetration"], b.nodes["penetration"])
-        np.testing.assert_allclose(a.nodes["elastic"], b.nodes["elastic"], rtol=0, atol=1e-15)
-    assert not together[0].nodes["elastic"].any() and np.abs(together[-1].nodes["elastic"]).max() > 0.01

@@ -62,16 +62,16 @@ def test_a_split_without_trajectories_is_refused(pressed, capsys):
 
 
 def test_the_scale_table_gives_the_factor_that_best_fits_each_answer_to_its_data(pressed, capsys):
-    assert elastic_answer.main(["--data", str(pressed), "--load", "force", "contact", "--scale"]) == 0
+    assert elastic_answer.main(["--data", str(pressed), "--hold", "1", "0.5", "--scale"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert lines[0] == "| hold (median edges), load | vs at rest (per trajectory) | RMSE all / body size |"
-    assert lines[5:7] == ["| hold (median edges), load | data / answer, median (per trajectory) |", "|---|---|"]
+    assert lines[0] == "| hold (median edges) | vs at rest (per trajectory) | RMSE all / body size |"
+    assert lines[5:7] == ["| hold (median edges) | data / answer, median (per trajectory) |", "|---|---|"]
     spec = FieldSpec.lagrangian(2)
-    for line, load_ in zip(lines[7:9], ("force", "contact"), strict=True):
+    for line, hold in zip(lines[7:9], (1.0, 0.5), strict=True):
         factors = []
         for path in split_files(pressed, "test"):
             trajectory = load(path)
-            predicted, _ = elastic_answer.answers(trajectory, 1.0, load_)
+            predicted, _ = elastic_answer.answers(trajectory, hold)
             factor = elastic_answer.best_scale(predicted, trajectory, spec)
             # the best factor: the fit's residual grows either way off it
             truth = trajectory.positions - trajectory.positions[:1]
@@ -79,5 +79,5 @@ def test_the_scale_table_gives_the_factor_that_best_fits_each_answer_to_its_data
             residual = [np.sum((truth - f * answer) ** 2) for f in (0.99 * factor, factor, 1.01 * factor)]
             assert residual[1] < min(residual[0], residual[2])
             factors.append(factor)
-        assert line == f"| 1, {load_} | {np.median(factors):.3g} ({', '.join(f'{f:.2f}' for f in factors)}) |"
+        assert line == f"| {hold:g} | {np.median(factors):.3g} ({', '.join(f'{f:.2f}' for f in factors)}) |"
     assert lines[-1].startswith("elastic answer: vs at rest ")

@@ -1,13 +1,10 @@
-"""ElasticResponse.constrained: the body's answer as a frictionless contact makes it
-(graph.elastic_load: contact)."""
+"""ElasticResponse.constrained: the body's answer as a frictionless contact makes it (graph.elastic)."""
 
 import numpy as np
 import pytest
 from scipy.optimize import nnls
 from test_elastic import _on_the_floor, _scenario, kuhn_tetrahedra
 
-from bsms.config import ConfigError
-from bsms.data import GraphOptions
 from bsms.physics import elastic as elastic_module
 from bsms.physics.elastic import REGULARISATION, ElasticResponse
 
@@ -126,8 +123,8 @@ def _pressed(scenario, punch, depth):
     return scenario.rest_pos, velocity
 
 
-def test_graph_elastic_load_contact_is_the_contact_answer_in_every_frame():
-    scenario, rest, facets, n_body, punch = _scenario(penetration=True, elastic=True, elastic_load="contact")
+def test_graph_elastic_is_the_contact_answer_in_every_frame():
+    scenario, rest, facets, n_body, punch = _scenario(penetration=True, elastic=True)
     states = [_pressed(scenario, punch, depth) for depth in (0.0, 0.1, 0.2)]
     solves = []
     factor = scenario.elastic._solver()
@@ -146,18 +143,10 @@ def test_graph_elastic_load_contact_is_the_contact_answer_in_every_frame():
     assert loaded.sum() >= 3 and not together[0].nodes["elastic"].any()
     reach = (deepest["elastic"][loaded] * deepest["penetration"][loaded]).sum(1)
     assert (reach >= (deepest["penetration"][loaded] ** 2).sum(1) * (1 - 1e-9)).all()  # every push met
-    forced, *_ = _scenario(penetration=True, elastic=True)
-    assert not np.allclose(forced.frame(*states[-1]).nodes["elastic"], deepest["elastic"])
-    with pytest.raises(ConfigError, match=r"^config key 'graph.elastic_load' says how the elastic input loads the "
-                                          r"body; set 'graph.elastic: true' too, or leave 'graph.elastic_load' out$"):
-        GraphOptions(penetration=True, elastic_load="contact").validate()
-    with pytest.raises(ValueError, match=r"^graph.elastic_load must be one of force, contact, got 'pressure'$"):
-        ElasticResponse(rest, facets, n_body, scenario.cells, 0.3, 0.1, load="pressure")
-    assert scenario.elastic.load == "contact" and forced.elastic.load == "force"
 
 
 def test_a_rollout_solves_for_each_pushed_node_once_and_training_keeps_nothing():
-    scenario, rest, facets, n_body, punch = _scenario(penetration=True, elastic=True, elastic_load="contact")
+    scenario, rest, facets, n_body, punch = _scenario(penetration=True, elastic=True)
     elastic = scenario.elastic
     solves = []
     factor = elastic._solver()

@@ -149,7 +149,7 @@ def _answers_as_a_model_sees_them(trajectory, options: GraphOptions, frames: int
 
 
 def test_the_physics_row_is_the_elastic_input_alone_timed_end_to_end(pressed):
-    options = GraphOptions(levels=3, from_rest=True, penetration=True, elastic=True, elastic_load="contact")
+    options = GraphOptions(levels=3, from_rest=True, penetration=True, elastic=True)
     frames = [len(t.times) - 1 for t in pressed]
     rows = physics_rollouts(options, pressed, frames)
     assert len(rows) == 2

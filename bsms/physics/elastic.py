@@ -9,26 +9,24 @@ tetrahedra in 3D), E = 1 and the scene's Poisson ratio:
 - the body is *held* where it touches the container (the walls around it, as
   :func:`bsms.physics.penetration.outlines` tells them): nodes within ``HOLD`` median rest edges of
   a wall are fixed -- a base bonded to the floor, a clamp;
-- the load is the penetration input (:class:`bsms.physics.penetration.Penetration`): each free
-  node inside an obstacle gets a force along the vector that would put it back on the
-  obstacle's surface, weighted by its share of the body's area (volume), ``f_i = m_i p_i``;
-- the response ``u = K^-1 f`` is scaled by the one factor ``a`` that best matches the loaded
-  nodes' displacements to their penetration vectors (least squares): ``a u``. The scale, and so
-  Young's modulus, drops out: the input is a displacement field in world units.
+- the load is the penetration input (:class:`bsms.physics.penetration.Penetration`), as a
+  frictionless contact: each free node inside an obstacle is moved along the vector that would put
+  it back on the obstacle's surface by at least its length and is free to slide across it, a node
+  the contact would pull is released, and the rest of the body follows elastically
+  (:meth:`ElasticResponse.constrained`). The answer is not scaled: Young's modulus drops out, and
+  the input is a displacement field in world units.
 
-Prescribing every penetrating node onto the obstacle's surface instead (a bilateral
-displacement condition) over-constrains the body -- a solver's contact lets it sink in by part
-of a cell and slide -- and matched the press family's test split worse in a first comparison
-(docs/press.md at 8757482, "The body's first-order answer"). A force, though, concentrates its strain under
-the nodes it acts on, so the scaled answer gives the far field too little (the press family's
-training bodies move 2.3 times as far at the median, 0.85-11 times). :meth:`ElasticResponse.constrained`
-(``graph.elastic_load: contact``) is the frictionless contact's answer instead: each pushed node
-moved along its push by its length and free to slide across it, released where the contact would
-pull, unscaled (docs/press.md at 8757482, "The answer's scale"). A tiny multiple of the
-stiffness' diagonal keeps a body that nothing holds solvable (it then mostly follows the load
-rigidly). The stiffness is factorised once per scenario, when it is built (with its hierarchy:
-mesh preprocessing, outside a learned frame's time; a process that unpickles a scenario makes
-its own on first use); a frame costs one sparse triangular solve pair.
+Prescribing every penetrating node onto the obstacle's surface (a bilateral displacement
+condition) over-constrains the body -- a solver's contact lets it sink in by part of a cell and
+slide -- and matched the press family's test split worse in a first comparison; forces along the
+pushes with the answer scaled to them where they act concentrate the strain under the loaded
+nodes and give the far field too little (the press family's training bodies move 0.85-11 times as
+far as that answer, 0.23-1.28 times as far as the contact's; ``graph.elastic_load: force``,
+retired: docs/experiments.md). A tiny multiple of the stiffness' diagonal keeps a body that
+nothing holds solvable (it then follows the push rigidly). The stiffness is factorised once per
+scenario, when it is built (with its hierarchy: mesh preprocessing, outside a learned frame's time;
+a process that unpickles a scenario makes its own on first use); a frame costs a solve pair per
+pushed node not seen before.
 """
 
 from __future__ import annotations
@@ -42,7 +40,7 @@ from scipy.sparse.linalg import splu
 
 from bsms.physics.penetration import closest_on_facets, outlines
 
-__all__ = ["HOLD", "REGULARISATION", "CONTACT_ITERATIONS", "CACHED_NODES", "LOADS", "stiffness", "nodal_measures",
+__all__ = ["HOLD", "REGULARISATION", "CONTACT_ITERATIONS", "CACHED_NODES", "stiffness",
            "held_nodes", "ElasticResponse"]
 
 # nodes within this many median rest edges of the container are held: the row on a bonded floor
@@ -52,8 +50,6 @@ __all__ = ["HOLD", "REGULARISATION", "CONTACT_ITERATIONS", "CACHED_NODES", "LOAD
 HOLD = 1.0
 # K + REGULARISATION * mean(diag K) * I: solvable when nothing holds the body, negligible otherwise
 REGULARISATION = 1e-9
-# how graph.elastic loads the body (graph.elastic_load): ElasticResponse.__call__ and .constrained
-LOADS = ("force", "contact")
 # nodes whose unit responses an ElasticResponse keeps for constrained (dofs x dim floats each; training's
 # datasets, which draw frames of many scenes, keep none)
 CACHED_NODES = 1024
@@ -95,12 +91,6 @@ def stiffness(rest: np.ndarray, cells: np.ndarray, nu: float) -> sparse.csc_matr
     rows = np.repeat(dofs, dofs.shape[1], axis=1).ravel()
     cols = np.tile(dofs, (1, dofs.shape[1])).ravel()
     return sparse.csc_matrix((local.ravel(), (rows, cols)), shape=(dim * n, dim * n))
-
-
-def nodal_measures(rest: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """(N,) each node's share of the mesh's area (volume): a cell's measure split evenly among its corners."""
-    _, measure = _gradients(np.asarray(rest, np.float64), np.asarray(cells, np.int64))
-    return np.bincount(np.asarray(cells).ravel(), np.repeat(measure / cells.shape[1], cells.shape[1]), len(rest))
 
 
 def held_nodes(rest: np.ndarray, facets: np.ndarray, n_body: int, tolerance: float) -> np.ndarray:
@@ -158,10 +148,7 @@ class ElasticResponse:
     the container are held."""
 
     def __init__(self, rest: np.ndarray, facets: np.ndarray, n_body: int, cells: np.ndarray, nu, edge_length: float,
-                 hold: float = HOLD, load: str = "force"):
-        if load not in LOADS:
-            raise ValueError(f"graph.elastic_load must be one of {', '.join(LOADS)}, got {load!r}")
-        self.load = load
+                 hold: float = HOLD):
         if not isinstance(nu, (int, float)) or isinstance(nu, bool):
             raise ValueError(f"graph.elastic needs the material's Poisson ratio: the scene has no numeric parameter "
                              f"'nu' (got {nu!r}); give the scene params a 'nu', or set graph.elastic: false")
@@ -171,7 +158,6 @@ class ElasticResponse:
             raise ValueError(f"graph.elastic needs a simplex body mesh ({self.dim + 1}-node cells in "
                              f"{self.dim}D), got cells of {np.asarray(cells).shape[1]} nodes")
         self.stiffness = stiffness(rest[:n_body], cells, nu)
-        self.measures = nodal_measures(rest[:n_body], cells)
         self.held = held_nodes(rest, facets, n_body, hold * edge_length)
         keep = np.ones(self.dim * self.n_body, bool)
         keep[(self.dim * self.held[:, None] + np.arange(self.dim)).ravel()] = False
@@ -227,34 +213,13 @@ class ElasticResponse:
         return self._factor
 
     def __call__(self, penetration: np.ndarray) -> np.ndarray:
-        """(N, d) for ``penetration`` (N, d) of all scenario nodes (0 outside the obstacles): the
-        body's scaled response ``a u`` on its nodes, 0 on the others (and everywhere when no body
-        node is loaded or nothing is free to move); with ``load`` ``contact``,
-        :meth:`constrained`."""
-        return self.many([penetration])[0]
+        """(N, d) the body's answer to ``penetration`` (N, d) of all scenario nodes (0 outside the
+        obstacles): :meth:`constrained`."""
+        return self.constrained(penetration)
 
     def many(self, penetrations: list[np.ndarray]) -> list[np.ndarray]:
-        """:meth:`__call__` of each of ``penetrations``, with one solve for all of them (a solve
-        of many right-hand sides costs about half as much per right-hand side as one alone); with
-        ``load`` ``contact``, :meth:`constrained_many`."""
-        if self.load == "contact":
-            return self.constrained_many(penetrations)
-        out = [np.zeros(np.shape(p), np.float64) for p in penetrations]
-        loads = [np.asarray(p, np.float64)[: self.n_body] for p in penetrations]
-        active = [k for k, p in enumerate(loads) if np.any(p != 0)]
-        if not active or not len(self.free_dofs):
-            return out
-        forces = np.stack([(self.measures[:, None] * loads[k]).ravel()[self.free_dofs] for k in active], axis=1)
-        solved = self._solver().solve(forces)
-        for column, k in enumerate(active):
-            u = np.zeros(self.dim * self.n_body)
-            u[self.free_dofs] = solved[:, column]
-            u, p = u.reshape(self.n_body, self.dim), loads[k]
-            loaded = np.any(p != 0, axis=1)
-            fit = float((u[loaded] ** 2).sum())
-            if fit > 0:
-                out[k][: self.n_body] = u * (float((u[loaded] * p[loaded]).sum()) / fit)
-        return out
+        """:meth:`__call__` of each of ``penetrations``: :meth:`constrained_many`."""
+        return self.constrained_many(penetrations)
 
     def constrained_many(self, penetrations: list[np.ndarray]) -> list[np.ndarray]:
         """:meth:`constrained` of each of ``penetrations`` (a rollout's frames), the unit
@@ -284,8 +249,8 @@ class ElasticResponse:
         multiplier) is released instead: the conditions of frictionless contact with the
         obstacle's surface where the push puts it (every pushed node on it or clear of it, every
         multiplier a push, none where a node is clear), solved exactly as non-negative least
-        squares of the multipliers. Unlike :meth:`__call__` the answer is not scaled to the pushes --
-        the loaded nodes meet them. Costs d solves per loaded node not seen before (of one
+        squares of the multipliers. The answer is not scaled to the pushes -- the loaded nodes meet
+        them. Costs d solves per loaded node not seen before (of one
         factorisation, with many right-hand sides) and dense algebra of the loaded nodes' count."""
         out = np.zeros(np.shape(penetration), np.float64)
         push = np.asarray(penetration, np.float64)[: self.n_body]

@@ -42,7 +42,7 @@ from bsms.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_check
 from bsms.config import ConfigError, load, to_dict, without_retired
 from bsms.data import FrameDataset
 from bsms.models.precision import cpu_has_bf16
-from bsms.options import GraphOptions
+from bsms.options import GraphOptions, saved_graph_options
 from bsms.run import (
     Config,
     build_model,
@@ -67,8 +67,7 @@ _OPERATIONAL = {"train.progress", "train.workers", "train.device", "dataset.work
 _ADDED = {"dataset.kind": "mpm", "graph.contact_distance": None, "train.unroll": 1, "train.unroll_gradient": "last",
           "train.unroll_warmup": 0, "graph.from_rest": False, "train.trajectories": None,
           "graph.penetration": False, "graph.clearance": False, "train.rotate": 0.0,
-          "graph.elastic": False,
-          "graph.elastic_load": "force", "train.shard": False}
+          "graph.elastic": False, "train.shard": False}
 
 
 def _flat(data: dict, prefix: str = "") -> dict:
@@ -271,7 +270,9 @@ class Trainer:
         if not saved_path.is_file():
             return
         saved = load(saved_path)  # less the keys retired since (an error where the run used one)
-        saved["graph"] = without_retired(GraphOptions, saved.get("graph") or {}, "graph")
+        graph = saved.get("graph") or {}
+        without_retired(GraphOptions, saved_graph_options(graph), "graph")
+        saved["graph"] = without_retired(GraphOptions, graph, "graph")
         saved, now = {**_ADDED, **_flat(saved)}, _flat(to_dict(self.config))
         changed = sorted(k for k in set(saved) | set(now) if k not in _OPERATIONAL and saved.get(k) != now.get(k))
         if changed:
