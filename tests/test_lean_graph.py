@@ -192,3 +192,23 @@ def test_graph_sizes_follow_the_bodies(letters_in_a_corner):
     assert air.num_nodes == scenario.n_body and air.contact_index_0.shape[1] == 0
     assert floor.num_nodes > scenario.n_body
     assert torch.equal(floor.scenario_nodes[: scenario.n_body], torch.arange(scenario.n_body))
+
+
+def test_graph_self_contact_joins_close_nodes_of_one_body_that_are_not_mesh_neighbours():
+    """graph.self_contact: a body alone gets contact edges between its own nodes within the radius
+    that no mesh edge joins (a body folding onto itself); without it, none."""
+    body = shapes.disk(0.5, 0.1)
+    free = np.full(body.n_nodes, NodeType.FREE)
+    pos = body.nodes.copy()
+    for self_contact in (True, False):
+        options = GraphOptions(levels=2, obstacles=False, self_contact=self_contact)
+        scenario = Scenario.build(body, options, frame_dt=0.01, node_type=free)
+        graph = scenario.graph(pos, np.zeros_like(pos))
+        contacts = graph.scenario_nodes[graph.contact_index_0].numpy()
+        if not self_contact:
+            assert contacts.shape[1] == 0
+            continue
+        expected = contact_edges(pos, np.zeros(body.n_nodes, np.int64), scenario.contact_radius, body.edges)
+        assert contacts.shape[1] > 0 and np.array_equal(contacts, expected)
+        meshed = {tuple(edge) for edge in body.edges.tolist()} | {tuple(edge[::-1]) for edge in body.edges.tolist()}
+        assert not meshed & set(map(tuple, contacts.T.tolist()))
