@@ -16,32 +16,15 @@ import dataclasses
 import math
 import types
 import typing
-from collections.abc import Callable, Mapping
 from typing import Any, Literal, Union, get_args, get_origin
 
 import yaml
 
-from datagen.config import ConfigError, read_yaml, reject_unknown
+from datagen.config import ConfigError, Retired, read_yaml, reject_unknown, without_retired
 
-# ConfigError is the one error of every config in the project (datasets, scenes, training runs).
+# ConfigError is the one error of every config in the project (datasets, scenes, training runs);
+# Retired and without_retired handle the keys retired from one (datagen.config).
 __all__ = ["ConfigError", "Retired", "build", "without_retired", "load", "apply_overrides", "to_dict", "at_least"]
-
-
-@dataclasses.dataclass(frozen=True)
-class Retired:
-    """A key retired from the section of a config dataclass (its ``RETIRED`` class attribute maps
-    names to these): an experiment measured and not adopted (docs/experiments.md).
-
-    what: what the key did, in a few words; now: the value whose behaviour the code keeps, in
-    words; commit: the commit that last has the key (``git checkout`` brings it back); keeps:
-    ``keeps(value, section)`` is true where ``value``, given in the ``section`` mapping, asks for
-    what the code does now -- such a key is dropped, so that the saved configs of earlier runs,
-    which list every key, still load."""
-
-    what: str
-    now: str
-    commit: str
-    keeps: Callable[[Any, Mapping], bool]
 
 
 def _type_name(annotation) -> str:
@@ -109,25 +92,11 @@ def _convert(value, annotation, key: str):
     raise ConfigError(f"config key '{key}' must be {_type_name(annotation)}, got {value!r}")
 
 
-def without_retired(cls, data: Mapping, prefix: str = "") -> dict:
-    """``data`` less the keys retired from dataclass ``cls`` (its ``RETIRED``), each checked: a value
-    that asks for anything but what the code does now is a ConfigError naming the key."""
-    retired = getattr(cls, "RETIRED", {})
-    for name in sorted(set(data) & set(retired)):
-        entry = retired[name]
-        if not entry.keeps(data[name], data):
-            key = f"{prefix}.{name}" if prefix else name
-            value = yaml.safe_dump(data[name], default_flow_style=True).strip().removesuffix("...").strip()
-            raise ConfigError(f"config key '{key}' is retired ({entry.what}: measured and not adopted, "
-                              f"docs/experiments.md); got {value}: leave it out (this version always does what "
-                              f"{entry.now} did), or use the commit that has it: git checkout {entry.commit}")
-    return {key: value for key, value in data.items() if key not in retired}
-
-
 def build(cls, data, prefix: str = ""):
     """An instance of dataclass ``cls`` from the mapping ``data`` (missing keys take defaults).
 
-    Keys retired from ``cls`` are checked and dropped first (:func:`without_retired`). After
+    Keys retired from ``cls`` (its ``RETIRED`` class attribute) are checked and dropped first
+    (:func:`~datagen.config.without_retired`). After
     construction, a ``validate()`` method on the dataclass (if any) may raise ConfigError for
     constraints between fields; it gets the dotted prefix.
     """
@@ -136,7 +105,7 @@ def build(cls, data, prefix: str = ""):
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(f"{where} must be a mapping of keys to values, got {data!r}")
-    data = without_retired(cls, data, prefix)
+    data = without_retired(getattr(cls, "RETIRED", {}), data, prefix)
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     reject_unknown(data, fields, prefix=prefix, where=where)

@@ -83,7 +83,7 @@ class GraphOptions:
     """
 
     # options measured and not adopted (docs/experiments.md): a saved run's config that gives one
-    # its default loads; any other value is an error naming it (bsms.config.without_retired)
+    # its default loads; any other value is an error naming it (datagen.config.without_retired)
     RETIRED: ClassVar[dict[str, Retired]] = {
         "displacement": Retired("with quasi_static, free nodes' displacement from rest as their velocity input",
                                 "false", "b28cc7d", lambda value, graph: value is False),

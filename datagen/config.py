@@ -3,17 +3,23 @@
 Config files are YAML; :func:`read_yaml` resolves ``extends`` (a config, by relative path,
 that this one overrides). Every configuration a person writes (a simulation config, scene parameters, a dataset's
 ranges, a training run) goes through :func:`reject_unknown`, so a misspelt key gets the same
-message everywhere: the dotted key and what the place accepts.
+message everywhere: the dotted key and what the place accepts. A key retired from a place
+(:class:`Retired`, an experiment measured and not adopted: docs/experiments.md) goes through
+:func:`without_retired`: dropped where its value asks for what the code does now (the saved configs
+of earlier runs list every key), else one error that names it and the commit that has it.
 """
 
 from __future__ import annotations
 
 import copy
 import tempfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-__all__ = ["ConfigError", "reject_unknown", "section", "read_yaml", "merge", "output_folder"]
+__all__ = ["ConfigError", "Retired", "reject_unknown", "without_retired", "section", "read_yaml", "merge",
+           "output_folder"]
 
 
 class ConfigError(ValueError):
@@ -32,6 +38,40 @@ def reject_unknown(given: Mapping, known: Iterable[str], *, prefix: str = "", wh
     if unknown:
         name = f"{prefix}.{unknown[0]}" if prefix else unknown[0]
         raise ConfigError(f"unknown config key '{name}'; {where} accepts: {', '.join(sorted(known))}")
+
+
+@dataclass(frozen=True)
+class Retired:
+    """A config key retired from the place that accepted it: an experiment measured and not adopted
+    (docs/experiments.md).
+
+    what: what the key did, in a few words; now: the value whose behaviour the code keeps, in
+    words; commit: the commit that last has the key (``git checkout`` brings it back); keeps:
+    ``keeps(value, section)`` is true where ``value``, given in the ``section`` mapping, asks for
+    what the code does now -- such a key is dropped, so that the saved configs of earlier runs,
+    which list every key, still load."""
+
+    what: str
+    now: str
+    commit: str
+    keeps: Callable[[Any, Mapping], bool]
+
+
+def without_retired(retired: Mapping[str, Retired], given: Mapping, prefix: str = "") -> dict:
+    """``given`` less the keys of ``retired``, each checked: a value that asks for anything but what
+    the code does now is a ConfigError that names the dotted key (``prefix``: the dotted path of
+    ``given``), says it was retired, and gives the commit that has it."""
+    for name in sorted(set(given) & set(retired)):
+        entry = retired[name]
+        if not entry.keeps(given[name], given):
+            import yaml
+
+            key = f"{prefix}.{name}" if prefix else name
+            value = yaml.safe_dump(given[name], default_flow_style=True).strip().removesuffix("...").strip()
+            raise ConfigError(f"config key '{key}' is retired ({entry.what}: measured and not adopted, "
+                              f"docs/experiments.md); got {value}: leave it out (this version always does what "
+                              f"{entry.now} did), or use the commit that has it: git checkout {entry.commit}")
+    return {key: value for key, value in given.items() if key not in retired}
 
 
 def section(config: Mapping, name: str, defaults: Mapping, where: str | None = None) -> dict:

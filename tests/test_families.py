@@ -8,8 +8,6 @@ import pytest
 from datagen.config import ConfigError
 from datagen.dataset_config import load_dataset_config, trajectory_config
 from datagen.families import FAMILIES, get_family
-from datagen.scenes import get_scene
-from datagen.scenes.press import background_spacing
 from datagen.simulation import simulate
 from datagen.trajectory import NodeType
 
@@ -75,12 +73,10 @@ def test_sampling_is_seeded_and_differs_between_indices():
     assert trajectory_config(dconfig, "train", 3) != trajectory_config(dconfig, "test", 3)
 
 
-@pytest.mark.parametrize(("base", "grown", "factor"), [("press_deep", "press_deep_xl", 2),
-                                                      ("press_quickstart", "press_quickstart_xl", 2),
-                                                      ("bracket", "bracket_xl", 3), ("press_stiff", "press_stiff_xl", 2),
+@pytest.mark.parametrize(("base", "grown", "factor"), [("bracket", "bracket_xl", 3), ("press_stiff", "press_stiff_xl", 2),
                                                       ("press_stiff_xl", "press_stiff_xxl", 1.25)])
 def test_the_xl_datasets_only_add_training_trajectories(base, grown, factor):
-    """press_deep_xl, press_quickstart_xl, bracket_xl, press_stiff_xl and press_stiff_xxl only add training
+    """bracket_xl, press_stiff_xl and press_stiff_xxl only add training
     trajectories: the trajectories each shares with its base are the same simulations (its config
     tells users to hard-link them), and the rest are new."""
     small, large = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in (base, grown))
@@ -118,53 +114,15 @@ def test_press_stiff_is_press_kinds_ten_times_stiffer_on_a_twice_finer_backgroun
         assert {key: b["params"][key] for key in same} == same and b["seed"] == a["seed"]
 
 
-def test_press_fine_is_press_stiff_on_a_background_that_follows_the_body():
-    """press_fine draws press_stiff's bodies and drives in every split with params.grid_ratio 1.5: a
-    body at body_size (2.5 mm) keeps the 3.75 mm background, a body refined for min_nodes gets a
-    finer one."""
-    stiff, fine = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in ("press_stiff", "press_fine"))
-    assert fine["params"]["grid_ratio"] == 1.5 and fine["splits"] == stiff["splits"]
-    for split, k in [("test", 0), ("test", 2), ("valid", 3), ("train", 0), ("train", 191)]:
-        a, b = trajectory_config(stiff, split, k), trajectory_config(fine, split, k)
-        assert {key: v for key, v in b["params"].items() if key != "grid_ratio"} == a["params"]
-        assert b["seed"] == a["seed"]
-    press = get_scene("press")
-    thin, compact = (press.params(trajectory_config(fine, "test", k)["params"]) for k in (0, 2))  # a J, a polygon
-    assert background_spacing(compact) == 0.00375
-    assert 0.0015 < background_spacing(thin) < 0.002
-
-
-def test_press_multires_meshes_press_stiff_xls_bodies_at_drawn_spacings():
-    """press_multires draws press_stiff_xl's bodies and drives; each train and valid body gets a
-    spacing of its own (log-uniform in the range, min_nodes off), the test split stays as it was."""
-    xl, multi = (load_dataset_config(CONFIGS / f"{name}.yaml") for name in ("press_stiff_xl", "press_multires"))
-    assert multi["ranges"]["train_body_size"] == [0.0015, 0.005] and multi["splits"] == xl["splits"]
-    for k in range(xl["splits"]["test"]):
-        assert trajectory_config(multi, "test", k) == trajectory_config(xl, "test", k)
-    spacings = []
-    for split, count in [("train", 60), ("valid", 8)]:
-        for k in range(count):
-            a, b = trajectory_config(xl, split, k)["params"], trajectory_config(multi, split, k)["params"]
-            assert {key: value for key, value in b.items() if key not in ("body_size", "min_nodes")} == \
-                {key: value for key, value in a.items() if key not in ("body_size", "min_nodes")}
-            assert b["min_nodes"] == 0 and a["min_nodes"] == 1000
-            spacings.append(b["body_size"])
-    logs = np.log(spacings)
-    assert 0.0015 <= min(spacings) and max(spacings) <= 0.005 and len(set(spacings)) > 60  # rounded to 1 um
-    # log-uniform: the mean of the logs is the log of the geometric mean, 68 draws within 4 standard errors
-    assert abs(logs.mean() - np.log(np.sqrt(0.0015 * 0.005))) < 4 * np.log(0.005 / 0.0015) / np.sqrt(12 * 68)
-    with pytest.raises(ConfigError, match=r"ranges.train_body_size must be a number or \[low, high\]"):
-        trajectory_config({**multi, "ranges": {**multi["ranges"], "train_body_size": [0.005, 0.001]}}, "train", 0)
-
-
-def test_a_drawn_body_spacing_meshes_the_body_at_that_spacing():
-    """The spacing a press draw takes is the one its body is meshed at (gmsh's element size: the
-    mean edge within 25% of it), from 1.5 mm (2000 nodes) to 5 mm (a hundred or two)."""
+def test_a_body_spacing_meshes_the_body_at_that_spacing():
+    """The spacing ``params.body_size`` of a press body is the one it is meshed at (gmsh's element
+    size: the mean edge within 25% of it), from 1.5 mm (2000 nodes) to 5 mm (a hundred or two); the
+    bodies and spacings the retired press_multires drew (docs/experiments.md)."""
     from datagen.scenes.press import body_mesh, params
 
-    multi = load_dataset_config(CONFIGS / "press_multires.yaml")
-    for k in (0, 1, 3, 4):
-        p = params(trajectory_config(multi, "train", k)["params"])
+    stiff = load_dataset_config(CONFIGS / "press_stiff_xl.yaml")
+    for k, spacing in ((0, 0.004886), (1, 0.004781), (3, 0.001545), (4, 0.002466)):
+        p = params({**trajectory_config(stiff, "train", k)["params"], "body_size": spacing, "min_nodes": 0})
         mesh = body_mesh(p)
         edges = mesh.cells[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
         mean_edge = np.linalg.norm(mesh.nodes[edges[:, 0]] - mesh.nodes[edges[:, 1]], axis=1).mean()

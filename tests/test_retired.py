@@ -4,6 +4,7 @@ saved run's, which list every key -- load, train on and resume as before."""
 
 import re
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -15,6 +16,7 @@ from bsms.data import saved_graph_options
 from bsms.options import GraphOptions
 from bsms.run import Config, load_config
 from bsms.training.trainer import Trainer
+from datagen.families import get_family
 
 # (graph section, the error's exact message)
 RETIRED = [
@@ -74,6 +76,18 @@ def test_the_published_models_configs_load(name):
     state = torch.load(PRETRAINED / name / "checkpoints" / "best.pt", map_location="cpu", weights_only=True)
     saved = build(Config, {**state["config"], "graph": saved_graph_options(state["config"].get("graph"))})
     assert saved.graph == config.graph and saved.model == config.model
+
+
+def test_a_retired_dataset_range_is_one_error_that_names_it():
+    press = get_family("press")
+    with pytest.raises(ConfigError) as error:
+        press.sample({"train_body_size": [0.0015, 0.005]}, np.random.default_rng(0), "train")
+    assert str(error.value) == (
+        "config key 'ranges.train_body_size' is retired (the train and valid bodies meshed at a spacing drawn for "
+        "each: measured and not adopted, docs/experiments.md); got [0.0015, 0.005]: leave it out (this version "
+        "always does what null did), or use the commit that has it: git checkout 0417dad")
+    rng = np.random.default_rng(0)
+    assert press.sample({"train_body_size": None}, rng, "train") == press.sample({}, np.random.default_rng(0), "train")
 
 
 def test_a_saved_run_that_lists_the_retired_keys_resumes(tiny_dataset, tmp_path, one_thread):

@@ -271,8 +271,8 @@ class Trainer:
             return
         saved = load(saved_path)  # less the keys retired since (an error where the run used one)
         graph = saved.get("graph") or {}
-        without_retired(GraphOptions, saved_graph_options(graph), "graph")
-        saved["graph"] = without_retired(GraphOptions, graph, "graph")
+        without_retired(GraphOptions.RETIRED, saved_graph_options(graph), "graph")
+        saved["graph"] = without_retired(GraphOptions.RETIRED, graph, "graph")
         saved, now = {**_ADDED, **_flat(saved)}, _flat(to_dict(self.config))
         changed = sorted(k for k in set(saved) | set(now) if k not in _OPERATIONAL and saved.get(k) != now.get(k))
         if changed:

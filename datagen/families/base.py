@@ -7,20 +7,23 @@ Every helper names the offending ``ranges.<key>`` when a value cannot be used.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 
-from ..config import ConfigError, reject_unknown
+from ..config import ConfigError, Retired, reject_unknown, without_retired
 
 __all__ = [
     "check_ranges", "uniform", "log_uniform", "integer", "choice", "place_disjoint", "midpoint", "log_midpoint",
 ]
 
 
-def check_ranges(family: str, defaults: dict, given: dict) -> dict:
-    """``given`` merged over ``defaults``; unknown keys raise ConfigError naming the known ones."""
+def check_ranges(family: str, defaults: dict, given: dict, retired: Mapping[str, Retired] | None = None) -> dict:
+    """``given`` merged over ``defaults``; unknown keys raise ConfigError naming the known ones, keys
+    ``retired`` from the family one naming the key (:func:`datagen.config.without_retired`)."""
     if not isinstance(given, dict):
         raise ConfigError(f"config key 'ranges' must be a mapping of {family} ranges, got {given!r}")
+    given = without_retired(retired or {}, given, "ranges")
     reject_unknown(given, defaults, prefix="ranges", where=f"family {family!r}")
     return {**defaults, **given}
 
