@@ -106,8 +106,13 @@ def cached_mesh(folder: Path, nodes: int, variant: int) -> tuple[np.ndarray, np.
     return data["nodes"], data["cells"]
 
 
+def _extent(nodes: np.ndarray) -> float:
+    """The mesh's largest side over the channel's 1.6 m, so that fields vary as much over any mesh."""
+    return float(np.ptp(nodes, axis=0).max()) / 1.6
+
+
 def frame(nodes: np.ndarray, cells: np.ndarray, seed: int, cache: Path):
-    """One LevelGraph on the mesh: smooth displacement, velocity and target fields (seeded)."""
+    """One LevelGraph on the mesh (2D or 3D): smooth displacement, velocity and target fields (seeded)."""
     from bsms.graph import bistride_levels
     from bsms.level_graph import frame_graph, hierarchy_levels
     from datagen.mesh import Mesh
@@ -115,7 +120,8 @@ def frame(nodes: np.ndarray, cells: np.ndarray, seed: int, cache: Path):
     mesh = Mesh(nodes, cells)
     hierarchy = bistride_levels(mesh, levels="auto", min_nodes=MIN_NODES, cache_dir=cache)
     rng = np.random.default_rng(seed)
-    k = rng.normal(size=(3, 2, 2)) * 4
+    dim = nodes.shape[1]
+    k = rng.normal(size=(3, dim, dim)) * 4 / _extent(nodes)
 
     def smooth(j: int) -> np.ndarray:
         return np.sin(nodes @ k[j]) * 0.01
@@ -157,6 +163,13 @@ def _measure(model, batches, optimizer, device, warmup: int, phase: str, clock_n
         sync()
         return clock() - start
 
+    if phase == "infer":  # inference alone (too slow to train here): the warm-up batches feed the normalisers
+        with torch.no_grad():
+            for batch in batches[:max(warmup, 1)]:
+                model.loss(batch, accumulate=True, reduction="sum")
+        model.eval()
+        with torch.no_grad():
+            return {"infer_s": float(np.median([timed(lambda b=b: model(b)) for b in batches][warmup:]))}
     meter = MemoryMeter(device)
     meter.start()
     train = [timed(lambda b=b, k=k: train_step(b, k < warmup)) for k, b in enumerate(batches)][warmup:]
@@ -175,19 +188,25 @@ def worker(spec: dict) -> dict:
     if spec["phase"] == "memory" and spec["device"] == "cpu":
         release_freed_memory()
     import torch
+
+    torch.set_num_threads(spec["threads"])
+    folder = Path(spec["data"])
+    graphs = []
+    for i in range(spec["batch"] * (spec["warmup"] + spec["steps"])):
+        nodes, cells = cached_mesh(folder, spec["size"], i % spec["batch"])
+        graphs.append(frame(nodes, cells, seed=i, cache=folder / "hierarchies")[0])
+    return measure_model(spec, graphs, 2)
+
+
+def measure_model(spec: dict, graphs: list, dim: int) -> dict:
+    """Build ``spec``'s model for ``dim`` and measure it on ``graphs`` (``spec["batch"]`` per step):
+    the ``phase``'s figures, the levels run and the mean nodes per batch."""
+    import torch
     from torch_geometric.data import Batch
 
     from bsms.run import build_model, load_config
 
-    torch.set_num_threads(spec["threads"])
     device = torch.device(spec["device"])
-    folder = Path(spec["data"])
-    graphs, depth = [], 1
-    for i in range(spec["batch"] * (spec["warmup"] + spec["steps"])):
-        nodes, cells = cached_mesh(folder, spec["size"], i % spec["batch"])
-        graph, levels = frame(nodes, cells, seed=i, cache=folder / "hierarchies")
-        graphs.append(graph)
-        depth = max(depth, levels)
     # every graph needs the same level count to batch: cut to the shallowest mesh's depth
     depth = min(g.n_levels for g in graphs)
     batches = [Batch.from_data_list(graphs[k:k + spec["batch"]]).to(device)
@@ -199,7 +218,7 @@ def worker(spec: dict) -> dict:
         "train": {"normalizer_steps": max(spec["warmup"], 1)},
     })
     torch.manual_seed(0)
-    model = build_model(config, 2).to(device)
+    model = build_model(config, dim).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4)
     if spec["device"] == "cpu" and spec["memory_cap"] > 0:
         _cap_memory(int(spec["memory_cap"] * 2**30))
