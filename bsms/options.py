@@ -82,8 +82,8 @@ class GraphOptions:
         ``penetration`` (its loads) and simplex body meshes; costs a solve per penetrating node.
     """
 
-    # options measured and not adopted (docs/experiments.md): a saved run's config that gives one
-    # its default loads; any other value is an error naming it (datagen.config.without_retired)
+    # options measured and not adopted (docs/experiments.md): a saved run's config that gives one at
+    # what the code still does loads; any other value is an error naming it (datagen.config.without_retired)
     RETIRED: ClassVar[dict[str, Retired]] = {
         "displacement": Retired("with quasi_static, free nodes' displacement from rest as their velocity input",
                                 "false", "b28cc7d", lambda value, graph: value is False),
