@@ -147,9 +147,8 @@ class GraphOptions:
 
 
 # Graph options added after runs were saved with the behaviour before them: a saved run that
-# lacks one was trained with this value (the new default applies to new runs only; a retired
-# value is then the error that names it).
-_BEFORE = {"obstacle_margin": None, "elastic_load": "force"}
+# lacks one was trained with this value (the new default applies to new runs only).
+_BEFORE = {"obstacle_margin": None}
 
 
 def saved_graph_options(graph: dict | None) -> dict:

@@ -11,7 +11,7 @@ import yaml
 from conftest import tiny_run_config
 from pretrained_checks import PRETRAINED
 
-from bsms.config import ConfigError, build, load
+from bsms.config import ConfigError, build, load, to_dict
 from bsms.data import saved_graph_options
 from bsms.options import GraphOptions
 from bsms.run import Config, load_config
@@ -63,10 +63,12 @@ def test_a_retired_option_at_what_the_code_does_is_dropped():
     assert build(Config, {"name": "a", "graph": graph}).graph == GraphOptions(levels=3, penetration=True, elastic=True)
 
 
-def test_a_saved_run_from_before_elastic_load_was_trained_with_forces():
-    with pytest.raises(ConfigError, match=r"^config key 'graph.elastic_load' is retired \(force: .*; got force: "):
-        build(Config, {"name": "a", "graph": saved_graph_options({"penetration": True, "elastic": True})})
-    assert build(Config, {"name": "a", "graph": saved_graph_options({"penetration": True})}).graph.penetration
+def test_a_run_saved_by_this_version_loads_back():
+    """Its saved config lists no retired key: graph.elastic's contact answer is no retired load."""
+    config = build(Config, {"name": "a", "graph": {"from_rest": True, "penetration": True, "elastic": True}})
+    saved = to_dict(config)
+    assert "elastic_load" not in saved["graph"]
+    assert build(GraphOptions, saved_graph_options(saved["graph"]), "graph") == config.graph
 
 
 @pytest.mark.parametrize("name", ["press2d", "bracket2d", "cantilever2d"])

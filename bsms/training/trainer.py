@@ -42,7 +42,7 @@ from bsms.checkpoint import FORMAT, CheckpointError, load_checkpoint, save_check
 from bsms.config import ConfigError, load, to_dict, without_retired
 from bsms.data import FrameDataset
 from bsms.models.precision import cpu_has_bf16
-from bsms.options import GraphOptions, saved_graph_options
+from bsms.options import GraphOptions
 from bsms.run import (
     Config,
     build_model,
@@ -270,9 +270,7 @@ class Trainer:
         if not saved_path.is_file():
             return
         saved = load(saved_path)  # less the keys retired since (an error where the run used one)
-        graph = saved.get("graph") or {}
-        without_retired(GraphOptions.RETIRED, saved_graph_options(graph), "graph")
-        saved["graph"] = without_retired(GraphOptions.RETIRED, graph, "graph")
+        saved["graph"] = without_retired(GraphOptions.RETIRED, saved.get("graph") or {}, "graph")
         saved, now = {**_ADDED, **_flat(saved)}, _flat(to_dict(self.config))
         changed = sorted(k for k in set(saved) | set(now) if k not in _OPERATIONAL and saved.get(k) != now.get(k))
         if changed:
