@@ -239,6 +239,20 @@ def _cell_edges(cells: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(pairs, axis=1), axis=0)
 
 
+def _blit_panel(ax, x: np.ndarray, values, title: str, cells: np.ndarray, vmax: float, edges, obstacle) -> None:
+    """Draw one panel's moving artists onto the canvas (the obstacle's closed facets ``obstacle``
+    (F, k, 2) or None, the body, the title) and take them off the axes again."""
+    drawn = [] if obstacle is None else ax.plot(*_broken_line(obstacle), color="0.6", lw=1)
+    if np.isfinite(x).all():
+        drawn += _draw_body(ax, x, cells, values, vmax, edges)
+    else:
+        title = f"{title.split(',')[0]}: not finite"
+    drawn.append(ax.text(0.5, 1.01, title, transform=ax.transAxes, ha="center", va="bottom", fontsize=9))
+    for artist in sorted(drawn, key=lambda a: a.get_zorder()):  # mesh lines over the colours
+        ax.draw_artist(artist)
+        artist.remove()
+
+
 def _obstacle_frames(obstacles, steps: int):
     """Obstacle nodes by frame: (T, M, d) positions as given, or static (M, d) nodes for every frame."""
     if obstacles is None:
@@ -301,20 +315,9 @@ def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarra
         fig.canvas.restore_region(background)
         shown = [(truth[frame], None, "solver")] if truth is not None else []
         shown.append((predicted[frame], colour[frame], "learned"))
+        obstacle = None if outline is None else obstacle_frames[frame][:, :2][outline]
         for ax, (x, values, title) in zip(axes, shown, strict=True):
-            drawn = []
-            if outline is not None:
-                nodes = obstacle_frames[frame][:, :2]
-                drawn += ax.plot(*_broken_line(nodes[outline]), color="0.6", lw=1)
-            if np.isfinite(x).all():
-                drawn += _draw_body(ax, x, cells, values, vmax, edges)
-                title = f"{title}, t = {frame * frame_dt:.2f} s"
-            else:
-                title = f"{title}: not finite"
-            drawn.append(ax.text(0.5, 1.01, title, transform=ax.transAxes, ha="center", va="bottom", fontsize=9))
-            for artist in sorted(drawn, key=lambda a: a.get_zorder()):  # mesh lines over the colours
-                ax.draw_artist(artist)
-                artist.remove()
+            _blit_panel(ax, x, values, f"{title}, t = {frame * frame_dt:.2f} s", cells, vmax, edges, obstacle)
         rgb = Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
         images.append(rgb.quantize(256, method=Image.Quantize.FASTOCTREE))  # 8x faster than the adaptive palette
     plt.close(fig)
