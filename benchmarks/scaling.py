@@ -12,8 +12,9 @@ Every (model, size) runs in fresh processes, one for time and one for memory, me
 ``model_costs.py`` measures them (``--warmup`` then ``--steps`` training steps, then the same
 graphs as inference passes; the median step; memory: the resident-set high-water mark over the
 training steps). The inference step is the network on a built graph, as the thesis times it.
-A model whose training step took more than ``--max-step`` seconds at one size is only timed in
-inference at the larger ones, and one whose inference step did is not run (``-`` in the table); a
+A model whose training step would take more than ``--max-step`` seconds at a size (the power law
+through its two largest sizes so far) is only timed in inference there and above, and one whose
+inference step would take more than ``--max-infer`` is not run (``-`` in the table); a
 process that maps more than ``--memory-cap`` GiB counts as
 out of memory (``-``), as the thesis' tables mark configurations that did not fit.
 
@@ -33,7 +34,7 @@ log-log figure ``docs/images/scaling.png`` and the table ``docs/scaling_table.md
 
 (slopes of the inference step; the solver's of its frame; N the largest mesh BSMS-GNN ran).
 
-    python benchmarks/scaling.py [--sizes 5000 15000 45000 150000 500000] [--threads 2] [--docs]
+    python benchmarks/scaling.py [--sizes 5000 15000 45000 150000 500000] [--threads 2] [--docs] [--resume]
 """
 
 from __future__ import annotations
@@ -145,27 +146,41 @@ def slope(points: list[tuple[float, float]]) -> float | None:
     return float(np.polyfit(x, y, 1)[0])
 
 
-def measure_size(size: int, spec: dict, slow: dict[str, set[str]], max_step: float) -> dict:
-    """Every model and the solver on one size. ``slow``: the models whose training step (``train``) or
-    inference step (``infer``) took over ``max_step`` at a smaller size; a model too slow to train is
-    only timed in inference, one too slow in inference not run."""
+def predicted(points: list[tuple[float, float]], nodes: float) -> float:
+    """A step's time at ``nodes`` from the power law through the last two points (slope 1 from one)."""
+    if not points:
+        return 0.0
+    if len(points) == 1:
+        return points[-1][1] * nodes / points[-1][0]
+    (n0, t0), (n1, t1) = points[-2:]
+    return t1 * (nodes / n1) ** (math.log(t1 / t0) / math.log(n1 / n0))
+
+
+def measure_size(size: int, spec: dict, cells: dict[int, dict], max_step: float, max_infer: float) -> dict:
+    """Every model and the solver on one size. A model whose training step would take over
+    ``max_step`` seconds here (the power law through its two largest sizes so far) is only timed in
+    inference; one whose inference step would take over ``max_infer`` is not run."""
     cell = {}
     for label in MODELS:
-        if label in slow["infer"]:
-            cell[label] = {"skipped": f"its inference step took over {max_step:g} s at a smaller size"}
+        ran = [c[label] for c in cells.values() if "infer_s" in c[label]]
+        train = predicted([(r["nodes"], r["train_s"]) for r in ran if "train_s" in r], size)
+        infer = predicted([(r["nodes"], r["infer_s"]) for r in ran], size)
+        earlier = [c[label] for c in cells.values()]
+        if any("skipped" in r or r.get("inference_oom") for r in earlier):
+            cell[label] = {"skipped": "skipped or out of memory in inference at a smaller size"}
+            continue
+        if infer > max_infer:
+            cell[label] = {"skipped": f"its inference step would take {infer:.0f} s here"}
             continue
         _, name, transition = next(v for v in VARIANTS if v[0] == label)
         common = {**spec, "size": size, "model": name, "transition": transition, "batch": 1, "kind": "model"}
-        if label in slow["train"]:
-            cell[label] = run_worker({**common, "phase": "infer"})
-        else:
-            timing = run_worker({**common, "phase": "time"})
-            memory = run_worker({**common, "phase": "memory"}) if not timing.get("oom") else {"oom": True}
-            cell[label] = {**timing, **memory}
-        result = cell[label]
-        if not result.get("oom"):
-            slow["train"] |= {label} if result.get("train_s", math.inf) > max_step else set()
-            slow["infer"] |= {label} if result["infer_s"] > max_step else set()
+        if train > max_step or any("train_s" not in r for r in earlier):
+            result = run_worker({**common, "phase": "infer"})
+            cell[label] = {**result, "inference_oom": True} if result.get("oom") else result
+            continue
+        timing = run_worker({**common, "phase": "time"})
+        memory = run_worker({**common, "phase": "memory"}) if not timing.get("oom") else {"oom": True}
+        cell[label] = {**timing, **memory}
     cell["solver"] = run_worker({**spec, "size": size, "kind": "solver", "steps": 2})
     return cell
 
@@ -241,7 +256,12 @@ def parse(argv):
     parser.add_argument("--latent", type=int, default=128, help="latent and hidden width (default 128)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads per process (default 2)")
     parser.add_argument("--max-step", type=float, default=120.0,
-                        help="a model whose training step took longer (s) is not run at larger sizes (default 120)")
+                        help="a model whose training step would take longer (s) is timed in inference only "
+                             "(default 120)")
+    parser.add_argument("--max-infer", type=float, default=300.0,
+                        help="a model whose inference step would take longer (s) is not run (default 300)")
+    parser.add_argument("--resume", action="store_true",
+                        help="keep the sizes --out already holds, measured with the same settings")
     parser.add_argument("--memory-cap", type=float, default=16.0,
                         help="GiB a process may map beyond its start before it counts as out of memory (default 16)")
     parser.add_argument("--data", type=Path, default=Path("data/scaling"), help="mesh and hierarchy cache")
@@ -264,25 +284,37 @@ def main(argv=None) -> int:
         spec = json.loads(args.worker)
         print(json.dumps(solver_worker(spec) if spec["kind"] == "solver" else model_worker(spec)))
         return 0
+    from datagen.atomic import atomic_path
     from datagen.compiled import cpu_summary
 
     print(f"scaling: {args.warmup} warm-up + {args.steps} timed steps, {args.threads} threads, latent {args.latent}; "
           f"{cpu_summary()}", flush=True)
     spec = {"data": str(args.data), "steps": args.steps, "warmup": args.warmup, "threads": args.threads,
             "device": "cpu", "latent": args.latent, "memory_cap": args.memory_cap, "clock": "wall"}
-    cells, slow = {}, {"train": set(), "infer": set()}
+    settings = {k: spec[k] for k in ("steps", "warmup", "threads", "latent")}
+    done = {}
+    if args.resume and args.out.is_file():  # sizes measured before with the same settings
+        saved = json.loads(args.out.read_text())
+        if saved.get("settings") == settings:
+            done = {int(k): v for k, v in saved["cells"].items()}
+    cells = {}
     for size in args.sizes:
-        cells[size] = measure_size(size, spec, slow, args.max_step)
+        cells[size] = done.get(size) or measure_size(size, spec, cells, args.max_step, args.max_infer)
         print("\n".join(table({size: cells[size]})[-1:]), flush=True)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(args.out) as tmp:  # each size kept as it is measured (--resume)
+            tmp.write_text(json.dumps({"settings": settings, "cpu": cpu_summary(),
+                                       "cells": {str(k): v for k, v in cells.items()}}, indent=1))
     fitted = slopes(cells)
     lines = table(cells)
     print("\n".join(lines))
     print("\nslopes of log time (memory) against log nodes:")
     for label, values in fitted.items():
         print(f"  {NAMES[label]}: " + ", ".join(f"{k} {'-' if v is None else f'{v:.2f}'}" for k, v in values.items()))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "cpu": cpu_summary(),
-                                    "cells": {str(k): v for k, v in cells.items()}, "slopes": fitted}, indent=1))
+    with atomic_path(args.out) as tmp:
+        tmp.write_text(json.dumps({"settings": settings, "cpu": cpu_summary(), "args": {k: str(v) for k, v in
+                                   vars(args).items()}, "cells": {str(k): v for k, v in cells.items()},
+                                   "slopes": fitted}, indent=1))
     if args.docs:
         figure(cells, fitted, ROOT / "docs" / "images" / "scaling.png")
         (ROOT / "docs" / "scaling_table.md").write_text("\n".join(lines) + "\n")
