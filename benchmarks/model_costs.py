@@ -214,7 +214,9 @@ def measure_model(spec: dict, graphs: list, dim: int) -> dict:
     config = load_config({
         "name": "model_costs", "dataset": {"config": "unused"},
         "graph": {"levels": depth, "contact": False, "obstacles": False},
-        "model": {"name": spec["model"], "transition": spec["transition"], "latent": spec["latent"]},
+        "model": {"name": spec["model"], "transition": spec["transition"], "latent": spec["latent"],
+                  "hidden_layers": spec.get("hidden_layers", 2),
+                  "layer_norm": spec.get("layer_norm", True) or spec["model"] != "bsms_gnn"},  # bsms_gnn's option
         "train": {"normalizer_steps": max(spec["warmup"], 1)},
     })
     torch.manual_seed(0)

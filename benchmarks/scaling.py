@@ -5,7 +5,8 @@ tetrahedral meshes, beside the MPM solver's frame on as many particles.
 Meshes: a 10 x 10 x 2 cm plate (DEFORMINGPLATE's shape) tetrahedralised by gmsh to about each
 ``--sizes`` node count (calibrated, cached in ``--data``). Each graph is one mesh, its nodes
 displaced by smooth seeded fields (the same numbers for every model; ``model_costs.frame``). The
-models are ``model_costs.py``'s: MLPs of two hidden layers of ``--latent`` (128) units,
+models are ``model_costs.py``'s: MLPs of ``--hidden-layers`` (2) hidden layers of ``--latent`` (128) units
+(``--latent 64 --hidden-layers 1 --no-layer-norm``: the lean blocks of the published 2D models),
 MeshGraphNets 15 passes, MS-GNN-Grid the thesis' [4, 2, 2, 4] passes, BSMS-GNN one pass per
 level of a bi-stride hierarchy pooled until a level has fewer than 32 nodes (MinAve seeds).
 Every (model, size) runs in fresh processes, one for time and one for memory, measured as
@@ -35,6 +36,7 @@ log-log figure ``docs/images/scaling.png`` and the table ``docs/scaling_table.md
 (slopes of the inference step; the solver's of its frame; N the largest mesh BSMS-GNN ran).
 
     python benchmarks/scaling.py [--sizes 5000 15000 45000 150000 500000] [--threads 2] [--docs] [--resume]
+        [--latent 128] [--hidden-layers 2] [--no-layer-norm]
 """
 
 from __future__ import annotations
@@ -254,6 +256,10 @@ def parse(argv):
     parser.add_argument("--steps", type=int, default=2, help="timed steps per process (default 2)")
     parser.add_argument("--warmup", type=int, default=1, help="untimed steps first (default 1)")
     parser.add_argument("--latent", type=int, default=128, help="latent and hidden width (default 128)")
+    parser.add_argument("--hidden-layers", type=int, default=2, help="hidden layers of every MLP (default 2)")
+    parser.add_argument("--no-layer-norm", action="store_true",
+                        help="BSMS-GNN without LayerNorm (with --latent 64 --hidden-layers 1: the lean blocks of "
+                             "the published 2D models)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads per process (default 2)")
     parser.add_argument("--max-step", type=float, default=120.0,
                         help="a model whose training step would take longer (s) is timed in inference only "
@@ -269,7 +275,7 @@ def parse(argv):
     parser.add_argument("--docs", action="store_true", help="write docs/images/scaling.png and docs/scaling_table.md")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    for key in ("steps", "latent", "threads"):
+    for key in ("steps", "latent", "threads", "hidden_layers"):
         if getattr(args, key) < 1:
             parser.error(f"--{key} must be >= 1")
     if args.warmup < 0 or min(args.sizes) < 500:
@@ -287,11 +293,12 @@ def main(argv=None) -> int:
     from datagen.atomic import atomic_path
     from datagen.compiled import cpu_summary
 
-    print(f"scaling: {args.warmup} warm-up + {args.steps} timed steps, {args.threads} threads, latent {args.latent}; "
-          f"{cpu_summary()}", flush=True)
+    print(f"scaling: {args.warmup} warm-up + {args.steps} timed steps, {args.threads} threads, latent {args.latent}, "
+          f"{args.hidden_layers} hidden layers, LayerNorm {not args.no_layer_norm}; {cpu_summary()}", flush=True)
     spec = {"data": str(args.data), "steps": args.steps, "warmup": args.warmup, "threads": args.threads,
-            "device": "cpu", "latent": args.latent, "memory_cap": args.memory_cap, "clock": "wall"}
-    settings = {k: spec[k] for k in ("steps", "warmup", "threads", "latent")}
+            "device": "cpu", "latent": args.latent, "memory_cap": args.memory_cap, "clock": "wall",
+            "hidden_layers": args.hidden_layers, "layer_norm": not args.no_layer_norm}
+    settings = {k: spec[k] for k in ("steps", "warmup", "threads", "latent", "hidden_layers", "layer_norm")}
     done = {}
     if args.resume and args.out.is_file():  # sizes measured before with the same settings
         saved = json.loads(args.out.read_text())

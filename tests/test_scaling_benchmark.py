@@ -75,3 +75,22 @@ def test_a_slow_model_is_not_run_at_larger_sizes_and_the_last_line(monkeypatch, 
     assert lines[-1] == ("scaling: BSMS-GNN slope 1.00, MeshGraphNets slope 1.10, MS-GNN-Grid slope 1.20, "
                          "solver slope 1.33, largest 45000 nodes")
     assert any("| OOM / OOM, -" in line for line in lines)
+
+
+def test_lean_blocks_reach_the_workers_and_resume_only_keeps_the_same_settings(monkeypatch, tmp_path, capsys):
+    specs = []
+
+    def fake(spec):
+        specs.append(spec)
+        if spec["kind"] == "solver":
+            return {"substep_s": 1e-3, "substeps": 100, "frame_s": 0.1, "nodes": float(spec["size"])}
+        return {"nodes": float(spec["size"]), "levels": 4, "train_s": 1.0, "infer_s": 0.5, "train_peak_bytes": 10}
+
+    monkeypatch.setattr(scaling, "run_worker", fake)
+    out = str(tmp_path / "lean.json")
+    assert scaling.main(["--sizes", "5000", "--latent", "64", "--hidden-layers", "1", "--no-layer-norm", "--out", out]) == 0
+    models = [s for s in specs if s["kind"] == "model"]
+    assert models and all(s["latent"] == 64 and s["hidden_layers"] == 1 and s["layer_norm"] is False for s in models)
+    count = len(specs)
+    assert scaling.main(["--sizes", "5000", "--latent", "64", "--resume", "--out", out]) == 0
+    assert len(specs) > count, "two hidden layers with LayerNorm is another measurement"
