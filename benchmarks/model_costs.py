@@ -95,10 +95,14 @@ def channel(nodes: int, variant: int):
 
 
 def cached_mesh(folder: Path, nodes: int, variant: int) -> tuple[np.ndarray, np.ndarray]:
-    path = folder / f"channel_{nodes}_{variant}.npz"
+    return cached(folder / f"channel_{nodes}_{variant}.npz", lambda: channel(nodes, variant))
+
+
+def cached(path: Path, make) -> tuple[np.ndarray, np.ndarray]:
+    """(nodes, cells) of the mesh ``make()`` returns, meshed once and kept at ``path`` (.npz)."""
     if not path.is_file():
-        mesh = channel(nodes, variant)
-        folder.mkdir(parents=True, exist_ok=True)
+        mesh = make()
+        path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.npz")
         np.savez(tmp, nodes=mesh.nodes, cells=mesh.cells)
         tmp.replace(path)

@@ -54,7 +54,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
-from model_costs import VARIANTS, frame, measure_model  # noqa: E402
+from model_costs import VARIANTS, cached, frame, measure_model  # noqa: E402
 
 MODELS = ("BSMS", "MGN", "GRID")
 NAMES = {"BSMS": "BSMS-GNN", "MGN": "MeshGraphNets", "GRID": "MS-GNN-Grid", "solver": "solver"}
@@ -79,15 +79,7 @@ def plate(nodes: int):
 
 
 def cached_plate(folder: Path, nodes: int) -> tuple[np.ndarray, np.ndarray]:
-    path = folder / f"plate_{nodes}.npz"
-    if not path.is_file():
-        mesh = plate(nodes)
-        folder.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, nodes=mesh.nodes, cells=mesh.cells)
-        tmp.replace(path)
-    data = np.load(path)
-    return data["nodes"], data["cells"]
+    return cached(folder / f"plate_{nodes}.npz", lambda: plate(nodes))
 
 
 # ----------------------------------------------------------------------------- workers (children)

@@ -162,7 +162,7 @@ def _place(paths: list[Path], config, dconfig: dict, overrides: dict | None, ste
 
 
 def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder: Path, solver: bool,
-             bound: float, members=None, timing: dict | None = None, started: float | None = None) -> dict:
+             bound: float, members, timing: dict, started: float) -> dict:
     """What one rollout did (and, with ``solver``, its error and speed-up against the MPM solver;
     with ``members``, the rollouts of an ensemble's members alone, how far they disagree); writes
     its outputs and summary.json into ``folder``."""
@@ -177,7 +177,7 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
         "graph_nodes_ratio": float(np.mean(result.graph_nodes[:, 0])) / scenario.n_body,
         "steps": len(predicted) - 1, "frame_dt": placed.frame_dt, "finite": result.finite,
         "seconds_per_step": result.seconds_per_step, "scene": placed.resolved["scene"],
-        "params": placed.resolved["params"], "out": str(folder), "cpu": cpu_summary(), **(timing or {}),
+        "params": placed.resolved["params"], "out": str(folder), "cpu": cpu_summary(), **timing,
     }
     spread = None
     if members is not None:
@@ -202,8 +202,8 @@ def _summary(run_dir: Path, placed: _Placement, result, nodes: list[int], folder
     start = time.perf_counter()
     _write_outputs(folder, placed.scene, cells, predicted, truth, placed.frame_dt, placed.obstacle_path, spread)
     summary["outputs_s"] = time.perf_counter() - start
-    if started is not None:  # the whole call so far, the solver's run not counted
-        summary["call_s"] = time.perf_counter() - started - solver_wall
+    # the whole call so far (model load, setup, rollouts, outputs), the solver's run not counted
+    summary["call_s"] = time.perf_counter() - started - solver_wall
     with atomic_path(folder / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=float))
     return summary

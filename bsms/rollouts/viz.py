@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bsms.graph.obstacles import facet_edges
 from datagen.atomic import atomic_path
 from datagen.export import write_series as write_xdmf
 
@@ -211,7 +212,7 @@ def _colouring(predicted: np.ndarray, truth: np.ndarray | None, steps: int, fram
 
 
 def _draw_body(ax, x: np.ndarray, cells: np.ndarray, colour, vmax: float, edges: np.ndarray | None) -> list:
-    """Body positions ``x`` (N, d) on ``ax``: a 2D mesh (its ``edges`` (E, 2) as one line collection,
+    """Body positions ``x`` (N, d) on ``ax``: a 2D mesh (its ``edges`` (E, 2) as one broken line,
     the cells coloured where ``colour`` is given) or a 3D point cloud projected on x-y. Returns the
     artists drawn (the caller removes them before the next frame)."""
     if x.shape[-1] == 2:
@@ -232,21 +233,15 @@ def _broken_line(segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return joined[:, 0], joined[:, 1]
 
 
-def _cell_edges(cells: np.ndarray) -> np.ndarray:
-    """The unique edges (E, 2) of a mesh's cells."""
-    k = cells.shape[1]
-    pairs = np.concatenate([cells[:, [a, b]] for a in range(k) for b in range(a + 1, k)])
-    return np.unique(np.sort(pairs, axis=1), axis=0)
-
-
-def _blit_panel(ax, x: np.ndarray, values, title: str, cells: np.ndarray, vmax: float, edges, obstacle) -> None:
+def _blit_panel(ax, x: np.ndarray, values, name: str, when: str, cells: np.ndarray, vmax: float, edges,
+                obstacle) -> None:
     """Draw one panel's moving artists onto the canvas (the obstacle's closed facets ``obstacle``
-    (F, k, 2) or None, the body, the title) and take them off the axes again."""
+    (F, k, 2) or None, the body, the title: ``name`` and ``when``) and take them off the axes again."""
     drawn = [] if obstacle is None else ax.plot(*_broken_line(obstacle), color="0.6", lw=1)
+    title = f"{name}: not finite"
     if np.isfinite(x).all():
         drawn += _draw_body(ax, x, cells, values, vmax, edges)
-    else:
-        title = f"{title.split(',')[0]}: not finite"
+        title = f"{name}, {when}"
     drawn.append(ax.text(0.5, 1.01, title, transform=ax.transAxes, ha="center", va="bottom", fontsize=9))
     for artist in sorted(drawn, key=lambda a: a.get_zorder()):  # mesh lines over the colours
         ax.draw_artist(artist)
@@ -300,13 +295,12 @@ def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarra
                  label=label)
     for ax in axes:
         ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), aspect="equal", xticks=[], yticks=[])
-    edges = _cell_edges(np.asarray(cells)) if predicted.shape[-1] == 2 else None
+        ax.set_title(" ", fontsize=9)  # the title's place kept in the static background
+    edges = facet_edges(np.asarray(cells)) if predicted.shape[-1] == 2 else None
     outline = None
     if obstacles is not None and len(obstacles[0]):
         facets = np.asarray(obstacles[1])
         outline = np.concatenate([facets, facets[:, :1]], axis=1)  # each facet closed, drawn as one polyline
-    for ax in axes:
-        ax.set_title(" ", fontsize=9)  # the title's place kept in the static background
     fig.canvas.draw()
     background = fig.canvas.copy_from_bbox(fig.bbox)  # axes, colour bar: drawn once
     images = []
@@ -316,8 +310,8 @@ def rollout_gif(cells: np.ndarray, predicted: np.ndarray, path, truth: np.ndarra
         shown = [(truth[frame], None, "solver")] if truth is not None else []
         shown.append((predicted[frame], colour[frame], "learned"))
         obstacle = None if outline is None else obstacle_frames[frame][:, :2][outline]
-        for ax, (x, values, title) in zip(axes, shown, strict=True):
-            _blit_panel(ax, x, values, f"{title}, t = {frame * frame_dt:.2f} s", cells, vmax, edges, obstacle)
+        for ax, (x, values, name) in zip(axes, shown, strict=True):
+            _blit_panel(ax, x, values, name, f"t = {frame * frame_dt:.2f} s", cells, vmax, edges, obstacle)
         rgb = Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
         images.append(rgb.quantize(256, method=Image.Quantize.FASTOCTREE))  # 8x faster than the adaptive palette
     plt.close(fig)
