@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import io
+import warnings
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -42,22 +43,29 @@ _NON_SIMPLEX_DIM = {
 }
 
 
-def _read_simplices(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(points (N, d), cells (C, d+1)) of the top-dimensional simplices in a meshio file, with
-    coordinates beyond the mesh dimension dropped when they are zero; MeshError otherwise."""
+def read_meshio(path: Path):
+    """The meshio mesh in the file at ``path``, quietly; MeshError naming the file where it is
+    missing or meshio cannot read it."""
     import meshio
 
     if not path.is_file():
         raise MeshError(f"mesh file {path} does not exist")
     chatter = io.StringIO()
     try:  # meshio prints to the console and may even sys.exit on files it cannot parse
-        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
-            raw = meshio.read(path)
+        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # e.g. numpy's overflow where meshio tries an ASCII STL as binary
+            return meshio.read(path)
     except (Exception, SystemExit) as exc:
         detail = " ".join(chatter.getvalue().split()) or f"{type(exc).__name__}: {exc}"
         if isinstance(exc, IndexError):  # meshio indexes nodes while it reads some formats
             detail = f"a cell refers to a node the file does not hold ({detail}); re-export the mesh"
         raise MeshError(f"cannot read mesh file {path}: {detail}") from None
+
+
+def _read_simplices(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(points (N, d), cells (C, d+1)) of the top-dimensional simplices in a meshio file, with
+    coordinates beyond the mesh dimension dropped when they are zero; MeshError otherwise."""
+    raw = read_meshio(path)
     blocks = [(b.type, np.asarray(b.data)) for b in raw.cells if len(b.data)]
     found = sorted({t for t, _ in blocks})
     dims = [_MESHIO_DIM[t] for t, _ in blocks if t in _MESHIO_DIM]

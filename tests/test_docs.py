@@ -28,8 +28,8 @@ DOCS = ROOT / "docs"
 # registries, Trajectory and the file format, bistride_levels and the graph types,
 # LearnedSimulator and the cores, rollout(s), evaluate, infer, the config dataclasses).
 API = [
-    "datagen.simulate", "datagen.mesh.Mesh", "datagen.mesh.MeshError", "datagen.shapes", "datagen.scenes.SCENES",
-    "datagen.scenes.get_scene", "datagen.families.FAMILIES", "datagen.families.get_family", "datagen.families.place",
+    "datagen.simulate", "datagen.mesh.Mesh", "datagen.mesh.MeshError", "datagen.shapes", "datagen.surface",
+    "datagen.scenes.SCENES", "datagen.scenes.get_scene", "datagen.families.FAMILIES", "datagen.families.get_family", "datagen.families.place",
     "datagen.trajectory.Trajectory", "datagen.trajectory.NodeType", "datagen.dataset",
     "bsms.graph.bistride_levels", "bsms.graph.Hierarchy", "bsms.graph.BistrideLevel", "bsms.graph.Transition",
     "bsms.data.Scenario", "bsms.data.FrameDataset", "bsms.level_graph.LevelGraph", "bsms.level_graph.FrameArrays",

@@ -176,6 +176,41 @@ def test_3d_mesh_file(run_3d, tmp_path):
     check_outputs(out, summary, 2)
 
 
+def test_a_closed_surface_file_is_tetrahedralised_at_the_models_spacing(run_3d, tmp_path, capsys):
+    """bsms infer RUN --mesh part.stl on a 3D run: the part's surface meshed at the family's body
+    spacing once scaled to its bodies' size, rolled out and checked by the solver on that mesh."""
+    from surface_files import box_surface, triangles, write_binary_stl
+
+    run, _ = run_3d
+    points, quads = box_surface()
+    part = write_binary_stl(tmp_path / "part.stl", 30.0 * points, triangles(quads))  # a 30 x 60 x 15 mm part
+    out = tmp_path / "part"
+    assert main([str(run), "--mesh", str(part), "--steps", "2", "--solver", "--out", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    (record,) = summary["tetrahedralised"]
+    volume_file = out / "part_tetrahedra.vtu"
+    assert record["surface"] == str(part) and record["mesh"] == str(volume_file) and volume_file.is_file()
+    scale = summary["params"]["sizes"][0] / 60.0  # the family scales the part's largest extent to its bodies' size
+    assert record["spacing"] == 0.075 and record["size"] == pytest.approx(0.075 / scale), "balls_quick's body_size"
+    assert summary["meshes"] == [str(part)] and summary["nodes"] == [record["nodes"]]
+    assert summary["finite"] and summary["meshing_s"] == record["seconds"] > 0
+    check_outputs(out, summary, 2)
+    printed = capsys.readouterr().out
+    assert f"{part}: tetrahedralised at {record['size']:.4g} (the model's spacing 0.075 at the family's scale)" in printed
+
+
+def test_a_surface_file_for_a_2d_run_is_refused(run_2d, tmp_path, capsys):
+    from surface_files import box_surface, triangles, write_ascii_stl
+
+    run, _ = run_2d
+    points, quads = box_surface()
+    part = write_ascii_stl(tmp_path / "part.stl", points, triangles(quads))
+    assert main([str(run), "--mesh", str(part), "--quiet"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"error: mesh file {part} is a surface in 3D (triangles off the plane z = 0) but run {run} was trained on "
+        "2D meshes; give a 2D mesh (.msh, .vtu; a 2D mesh with z = 0)")
+
+
 def test_meshes_rolled_out_separately_as_one_batch(run_2d, tmp_path):
     from bsms.infer import infer
 

@@ -9,6 +9,15 @@ A mesh coarser than the family's own bodies is subdivided to their resolution wh
 places it so (the press families: each triangle into four, its nodes kept first;
 :mod:`datagen.refine`): the model and the solver run on the finer body, and everything below is
 reported on the given mesh's nodes (``--scene refine=false`` keeps it as given).
+A 3D run also takes a part as its closed surface, as a CAD tool exports it (STL ascii or binary,
+OBJ, any meshio file of triangles off the plane z = 0): merged, checked to bound a solid (one
+error naming the file, what is wrong and the fix where it does not: holes, edges of more than
+two triangles, inconsistent facets; :mod:`datagen.surface`) and tetrahedralised with gmsh at the
+model's spacing -- the family's bodies' ``body_size`` once the part is scaled like them, or their
+node count -- into ``<name>_tetrahedra.vtu`` in the output folder, which is then placed and
+rolled out as any mesh file (:mod:`bsms.infer.surfaces`; ``tetrahedralised`` and ``meshing_s`` in
+``summary.json``, apart from the times below: the model and the solver both start from the
+tetrahedra). A 2D run refuses a surface in 3D.
 Outputs, in ``--out`` (default ``RUN_DIR/infer/<mesh name>``): ``prediction.xdmf`` (+ .h5)
 for ParaView, ``prediction.gif`` and ``summary.json``. With ``--solver`` the MPM solver
 runs the same setup: ``solver.xdmf`` (+ .h5) holds its body nodes at the same frames (to put
@@ -65,6 +74,9 @@ from datagen.mesh import Mesh, MeshError
 from datagen.mpm.errors import SimulationError
 from datagen.scenes import get_scene
 from datagen.simulation import resolve_config
+from datagen.surface import ClosedSurface, closed_surface, surface_arrays
+
+from .surfaces import tetrahedralise_parts
 
 __all__ = ["InferError", "infer", "main"]
 
@@ -77,8 +89,23 @@ class InferError(ValueError):
     """An input of ``infer`` that cannot be used; the message names the file and the fix."""
 
 
-def read_mesh(path, dim: int, run_dir) -> Mesh:
-    """The mesh at ``path``, checked against the run's dimension."""
+def read_mesh(path, dim: int, run_dir) -> Mesh | ClosedSurface:
+    """The mesh at ``path``, checked against the run's dimension; for a 3D run, a file holding a
+    surface in 3D (STL, OBJ, triangles off z = 0: :func:`datagen.surface.surface_arrays`) is read as
+    a closed surface (:func:`datagen.surface.closed_surface`), tetrahedralised once it is known
+    where it goes (:mod:`bsms.infer.surfaces`)."""
+    try:
+        found = surface_arrays(path)
+    except MeshError as exc:
+        raise InferError(f"{exc} (fix or re-export the mesh, then try again)") from None
+    if found is not None and dim != 3:
+        raise InferError(f"mesh file {path} is a surface in 3D (triangles off the plane z = 0) but run {run_dir} was "
+                         f"trained on {dim}D meshes; give a {dim}D mesh (.msh, .vtu; a 2D mesh with z = 0)")
+    if found is not None:
+        try:
+            return closed_surface(*found, path)
+        except MeshError as exc:
+            raise InferError(str(exc)) from None
     try:
         mesh = Mesh.read(path)
     except MeshError as exc:
@@ -136,11 +163,13 @@ def _obstacle_path(scene, steps: int, frame_dt: float) -> np.ndarray | None:
     return obstacle_positions(frame_dt * np.arange(steps + 1))
 
 
-def _place(paths: list[Path], config, dconfig: dict, overrides: dict | None, steps: int | None) -> _Placement:
-    """The meshes at ``paths`` placed in the family's setting, their scene and scenario built (timed:
-    the learned side's per-mesh setup, ``setup_s``)."""
+def _place(paths: list[Path], config, dconfig: dict, overrides: dict | None, steps: int | None,
+           files: list[Path] | None = None) -> _Placement:
+    """The meshes at ``paths`` (read from ``files`` where given: the tetrahedral meshes of surface
+    files) placed in the family's setting, their scene and scenario built (timed: the learned side's
+    per-mesh setup, ``setup_s``)."""
     start = time.perf_counter()
-    sim_config = place(dconfig["family"], [str(p) for p in paths], dconfig, overrides or {})
+    sim_config = place(dconfig["family"], [str(p) for p in files or paths], dconfig, overrides or {})
     if steps is not None:
         sim_config.setdefault("output", {})["frames"] = int(steps)
     resolved = resolve_config(sim_config)
@@ -256,10 +285,13 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     resolve_device(device, "--device")  # checked, with the output folder, before any work
     folder = Path(out) if out is not None else run_dir / "infer" / "_".join(p.stem for p in paths)
     output_folder(folder, "--out" if out is not None else "the output folder (give another with --out)")
-    nodes = {p: read_mesh(p, dim, run_dir).n_nodes for p in paths}
+    parts = {p: read_mesh(p, dim, run_dir) for p in paths}
     dconfig = run_dataset_config(run_dir, config)
     groups = [[p] for p in paths] if separately else [paths]
-    placed = [_place(group, config, dconfig, overrides, steps) for group in groups]
+    volumes = _tetrahedralise(parts, groups, dconfig, overrides, folder)
+    nodes = {p: (volumes[p].mesh if p in volumes else parts[p]).n_nodes for p in paths}
+    placed = [_place(group, config, dconfig, overrides, steps, [volumes[p].file if p in volumes else p for p in group])
+              for group in groups]
 
     def roll_out(m, shown: bool, per_call: int | None = None, warmup: int = 0, most: int | None = None):
         # independent frames (graph.from_rest): all in one call unless per_call says otherwise
@@ -279,7 +311,7 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     folders = _subfolders(folder, paths) if separately else [folder]
     summaries = [_summary(run_dir, p, result, [nodes[m] for m in p.paths], where, solver, bound, alone,
                           {"setup_s": p.setup_s, "learned_s": learned, "latency_ms": 1e3 * one.seconds_per_step,
-                           "model_load_s": loaded}, started)
+                           "model_load_s": loaded, **_meshed(volumes, p.paths)}, started)
                  for p, result, where, alone, one in zip(placed, results, folders, members, latency, strict=True)]
     if not separately:
         return summaries[0]
@@ -287,6 +319,27 @@ def infer(run_dir, meshes, *, overrides: dict | None = None, steps: int | None =
     with atomic_path(folder / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1, default=float))
     return summary
+
+
+def _tetrahedralise(parts: dict, groups: list[list[Path]], dconfig: dict, overrides: dict | None, folder: Path) -> dict:
+    """The surface files among ``parts`` tetrahedralised at the run's spacing (:mod:`bsms.infer.surfaces`),
+    each written to ``folder/<name>_tetrahedra.vtu``."""
+    paths = list(parts)
+    files = {p: folder / f"{sub.name}_tetrahedra.vtu" for p, sub in zip(paths, _subfolders(folder, paths), strict=True)}
+    try:
+        return tetrahedralise_parts(parts, groups, dconfig, overrides, files)
+    except MeshError as exc:
+        raise InferError(str(exc)) from None
+
+
+def _meshed(volumes: dict, paths: list[Path]) -> dict:
+    """summary.json's record of the surface files among ``paths`` that were tetrahedralised:
+    ``tetrahedralised`` (each one's file, size, nodes, time) and ``meshing_s``, their total time
+    (apart from ``setup_s`` and the solver's time: both sides start from the tetrahedra)."""
+    done = [volumes[p] for p in dict.fromkeys(paths) if p in volumes]
+    if not done:
+        return {}
+    return {"tetrahedralised": [v.record() for v in done], "meshing_s": sum(v.seconds for v in done)}
 
 
 def _reported_cells(scene) -> np.ndarray:
@@ -315,7 +368,9 @@ def _write_outputs(folder: Path, scene, cells: np.ndarray, predicted: np.ndarray
 def main(argv=None, prog: str = "python -m bsms.infer") -> int:
     parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", help="a run folder written by train.py (runs/<name>)")
-    parser.add_argument("--mesh", action="append", required=True, help="mesh file (repeat for several bodies)")
+    parser.add_argument("--mesh", action="append", required=True,
+                        help="mesh file (repeat for several bodies); a 3D run also takes a part's closed surface "
+                             "(STL, OBJ), tetrahedralised at the model's spacing")
     parser.add_argument("--scene", action="append", default=[], metavar="KEY=VALUE",
                         help="change a scene parameter of the placement (repeatable), e.g. --scene E=2e4")
     parser.add_argument("--steps", type=int, default=None, help="rollout steps (default: the dataset's frames)")
@@ -338,6 +393,10 @@ def main(argv=None, prog: str = "python -m bsms.infer") -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for one in summary.get("rollouts", [summary]):
+        for volume in one.get("tetrahedralised", []):
+            print(f"{volume['surface']}: tetrahedralised at {volume['size']:.4g} (the model's spacing "
+                  f"{volume['spacing']:g} at the family's scale) into {volume['mesh']}: {volume['nodes']} nodes, "
+                  f"{volume['cells']} tetrahedra, {volume['seconds']:.3g} s")
         print(_describe(one))
         solver = ", solver.xdmf" if "rmse_all" in one else ""
         print(f"outputs in {one['out']}: prediction.xdmf{solver} (ParaView), prediction.gif, summary.json")
