@@ -8,13 +8,16 @@ that spacing too). Steps run as a simulation runs them: ``--steps`` substeps per
 the kernel every step (cell search included); ``umls python`` is the same solver one Python
 step at a time (the compiled kernels between torch operators: how it ran before the compiled
 substeps); in 3D the A-ULMPM ``total`` and ``adaptive`` reference configurations, which keep the
-kernel, are timed too. A structured quadratic MLS-MPM written in taichi (``taichi_mpm.py``, its
+kernel, are timed too, and ``umls float32``: the compiled substeps with ``precision="float32"``
+(the kernel, stress coefficients, node sums and G2P in single precision over a float64 state;
+:mod:`datagen.mpm.fused`). A structured quadratic MLS-MPM written in taichi (``taichi_mpm.py``, its
 CPU backend, the same threads) runs on the same particle counts in the benchmark's own
 environment: this interpreter if it has taichi, else a venv made at ``--taichi-env`` on first use
-(taichi is never a dependency of the package). Ends with exactly
-``throughput 2D: UMLS U M/s, taichi T M/s, ratio R`` and
+(taichi is never a dependency of the package), in float64 and, in 3D, in float32 as well. Ends with
+exactly ``throughput 2D: UMLS U M/s, taichi T M/s, ratio R``,
 ``throughput 3D: UMLS U M/s, taichi T M/s, ratio R`` (particle-steps per second, kernel rebuilt
-every step, the largest size of each dimension, same run; float64). The solver's per-particle loops
+every step, the largest size of each dimension, same run; float64) and
+``throughput 3D float32: UMLS U M/s, taichi T M/s, ratio R`` (both in float32). The solver's per-particle loops
 are the compiled ones of :mod:`datagen.mpm.native` where a C compiler is available
 (``BSMS_NATIVE=0`` times the torch code).
 
@@ -96,12 +99,14 @@ def time_steps(model: Model, state: State, steps: int, repeats: int = 3, python:
 def measure(kind: str, dim: int, n: int, steps: int, device) -> dict:
     """kind: ``bspline``, ``umls`` (kernel rebuilt every step), ``umls python`` (the same, one Python
     step at a time), ``umls total`` or ``umls adaptive`` (A-ULMPM reference configurations: the
-    kernel kept while the reference holds)."""
+    kernel kept while the reference holds), ``umls float32`` (``umls`` with the float32 substeps)."""
     x, v, vol, spacing = block(n, dim)
     start = time.perf_counter()
     model = bspline_model(dim, spacing, device) if kind == "bspline" else umls_model(dim, spacing, device)
     if kind in ("umls total", "umls adaptive"):
         model = replace(model, reference=kind.split()[1])
+    if kind == "umls float32":
+        model = replace(model, precision="float32")
     setup = time.perf_counter() - start
     state = State.at_rest_shape(x, v, vol, MATERIAL.density, device=device)
     per_step = time_steps(model, state, steps, python=kind == "umls python")
@@ -122,11 +127,11 @@ def taichi_python(env: Path) -> Path:
     return python
 
 
-def taichi_rate(python: Path, n: int, dim: int, steps: int, threads: int) -> dict:
+def taichi_rate(python: Path, n: int, dim: int, steps: int, threads: int, precision: str = "float64") -> dict:
     """taichi_mpm.py's measurement (structured quadratic MLS-MPM on the same block) in ``python``."""
     out = subprocess.run([str(python), str(Path(__file__).with_name("taichi_mpm.py")), "--particles", str(n),
-                          "--dim", str(dim), "--steps", str(steps), "--threads", str(threads)],
-                         capture_output=True, text=True)
+                          "--dim", str(dim), "--steps", str(steps), "--threads", str(threads),
+                          "--precision", precision], capture_output=True, text=True)
     if out.returncode != 0:
         raise SystemExit(f"the taichi measurement failed in {python} (exit {out.returncode}):\n{out.stderr[-2000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -170,39 +175,48 @@ def main() -> None:
     rows, taichi = [], []
     for dim in args.dims:
         for n in args.sizes:
-            kinds = ("bspline", "umls", "umls python", *(("umls total", "umls adaptive") if dim == 3 else ()))
+            kinds = ("bspline", "umls", "umls python",
+                     *(("umls total", "umls adaptive", "umls float32") if dim == 3 else ()))
             measured = {kind: measure(kind, dim, n, args.steps, device) for kind in kinds}
             for kind, row in measured.items():
                 row["ratio_over_bspline"] = row["particle_steps_per_s"] / measured["bspline"]["particle_steps_per_s"]
                 print(f"{kind:18s} {dim:3d} {row['particles']:9d} {row['nodes']:7d} {row['ms_per_step']:8.1f} "
                       f"{row['particle_steps_per_s'] / 1e6:11.3f} {row['ratio_over_bspline']:10.2f}", flush=True)
                 rows.append(row)
-            if python is not None:
-                t = taichi_rate(python, n, dim, args.steps, args.threads)
+            for precision in ("float64", "float32") if dim == 3 else ("float64",):
+                if python is None:
+                    break
+                t = taichi_rate(python, n, dim, args.steps, args.threads, precision)
                 taichi.append(t)
-                print(f"{'taichi ' + t['taichi']:18s} {dim:3d} {t['particles']:9d} {'':7s} {t['ms_per_step']:8.1f} "
+                ours = measured["umls" if precision == "float64" else "umls float32"]
+                name = f"taichi {t['taichi']}" + (" f32" if precision == "float32" else "")
+                print(f"{name:18s} {dim:3d} {t['particles']:9d} {'':7s} {t['ms_per_step']:8.1f} "
                       f"{t['particle_steps_per_s'] / 1e6:11.3f}   umls/taichi "
-                      f"{measured['umls']['particle_steps_per_s'] / t['particle_steps_per_s']:.3f}", flush=True)
+                      f"{ours['particle_steps_per_s'] / t['particle_steps_per_s']:.3f}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     summary = {"threads": args.threads, "device": str(device), "malloc_keeps_freed_memory": tuned, "rows": rows,
                "taichi": taichi}
     (args.out / "results.json").write_text(json.dumps(summary, indent=1))
     for dim in (2, 3):
         print(_summary(rows, taichi, dim))
+    print(_summary(rows, taichi, 3, "float32"))
 
 
-def _summary(rows: list[dict], taichi: list[dict], dim: int) -> str:
+def _summary(rows: list[dict], taichi: list[dict], dim: int, precision: str = "float64") -> str:
     """``throughput {dim}D: UMLS U M/s, taichi T M/s, ratio R`` at the largest size of ``dim`` ("n/a"
-    where taichi did not run or the dimension was not measured)."""
-    umls = [r for r in rows if r["dim"] == dim and r["kind"] == "umls"]
+    where taichi did not run or the dimension was not measured); with precision float32,
+    ``throughput {dim}D float32: ...`` from the float32 substeps and taichi's float32 run."""
+    kind, label = ("umls", f"{dim}D") if precision == "float64" else ("umls float32", f"{dim}D float32")
+    umls = [r for r in rows if r["dim"] == dim and r["kind"] == kind]
     if not umls:
-        return f"throughput {dim}D: UMLS n/a M/s, taichi n/a M/s, ratio n/a"
+        return f"throughput {label}: UMLS n/a M/s, taichi n/a M/s, ratio n/a"
     row = max(umls, key=lambda r: r["particles"])
-    ti = next((t for t in taichi if t["dim"] == dim and t["particles"] == row["particles"]), None)
+    ti = next((t for t in taichi if t["dim"] == dim and t["particles"] == row["particles"]
+               and t.get("precision", "float64") == precision), None)
     rate = row["particle_steps_per_s"]
     ti_text = "n/a" if ti is None else f"{ti['particle_steps_per_s'] / 1e6:#.3g}"
     ratio = "n/a" if ti is None else f"{rate / ti['particle_steps_per_s']:.3f}"
-    return f"throughput {dim}D: UMLS {rate / 1e6:#.3g} M/s, taichi {ti_text} M/s, ratio {ratio}"
+    return f"throughput {label}: UMLS {rate / 1e6:#.3g} M/s, taichi {ti_text} M/s, ratio {ratio}"
 
 if __name__ == "__main__":
     main()

@@ -43,9 +43,10 @@ def _program(ti, x0: np.ndarray, v0: np.ndarray, volume: float, h: float):
     x, v = ti.Vector.field(dim, float, p), ti.Vector.field(dim, float, p)
     C, F = ti.Matrix.field(dim, dim, float, p), ti.Matrix.field(dim, dim, float, p)
     grid_v, grid_m = ti.Vector.field(dim, float, (res,) * dim), ti.field(float, (res,) * dim)
-    x.from_numpy(x0)
-    v.from_numpy(v0)
-    F.from_numpy(np.tile(np.eye(dim), (p, 1, 1)))
+    real = np.float64 if ti.lang.impl.get_runtime().default_fp == ti.f64 else np.float32
+    x.from_numpy(x0.astype(real))
+    v.from_numpy(v0.astype(real))
+    F.from_numpy(np.tile(np.eye(dim, dtype=real), (p, 1, 1)))
 
     @ti.kernel
     def substep(dt: float):  # taichi reads this annotation: no "from __future__ import annotations" here
@@ -85,12 +86,14 @@ def _program(ti, x0: np.ndarray, v0: np.ndarray, volume: float, h: float):
     return substep
 
 
-def rate(n: int, dim: int, steps: int, threads: int) -> dict:
-    """Particle-steps per second of the taichi MLS-MPM on ``threads`` CPU threads (compiled first;
-    the best of three timed runs of ``steps`` substeps)."""
+def rate(n: int, dim: int, steps: int, threads: int, precision: str = "float64") -> dict:
+    """Particle-steps per second of the taichi MLS-MPM on ``threads`` CPU threads in ``precision``
+    (``float64`` or ``float32``: taichi's default float type; compiled first; the best of three timed
+    runs of ``steps`` substeps)."""
     import taichi as ti
 
-    ti.init(arch=ti.cpu, default_fp=ti.f64, cpu_max_num_threads=threads, log_level=ti.WARN)
+    ti.init(arch=ti.cpu, default_fp=ti.f64 if precision == "float64" else ti.f32, cpu_max_num_threads=threads,
+            log_level=ti.WARN)
     x0, v0, vol, spacing = block(n, dim)
     h = 2.0 * spacing
     substep = _program(ti, x0, v0, float(vol[0]), h)
@@ -105,7 +108,7 @@ def rate(n: int, dim: int, steps: int, threads: int) -> dict:
         ti.sync()
         best = min(best, (time.perf_counter() - start) / steps)
     return {"particles": len(x0), "dim": dim, "threads": threads, "taichi": ".".join(str(k) for k in ti.__version__),
-            "ms_per_step": 1e3 * best, "particle_steps_per_s": len(x0) / best}
+            "precision": precision, "ms_per_step": 1e3 * best, "particle_steps_per_s": len(x0) / best}
 
 
 def main() -> None:
@@ -114,8 +117,9 @@ def main() -> None:
     parser.add_argument("--dim", type=int, choices=(2, 3), required=True)
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--precision", choices=("float64", "float32"), default="float64")
     args = parser.parse_args()
-    print(json.dumps(rate(args.particles, args.dim, args.steps, args.threads)))
+    print(json.dumps(rate(args.particles, args.dim, args.steps, args.threads, args.precision)))
 
 
 if __name__ == "__main__":

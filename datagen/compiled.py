@@ -61,13 +61,14 @@ def cpu_summary() -> str:
     return f"{name}, {'AVX2' if 'avx2' in flags else 'no AVX2'}, {wide}"
 
 
-def _compile(compiler: str, source: Path, out: Path) -> None:
+def _compile(compiler: str, source: Path, out: Path, defines: tuple[str, ...] = ()) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
     try:
         for flags in (FLAGS, tuple(f for f in FLAGS if f not in ("-fopenmp", "-march=native"))):
-            done = subprocess.run([compiler, *flags, str(source), "-o", tmp, "-lm"], capture_output=True, text=True)
+            done = subprocess.run([compiler, *flags, *defines, str(source), "-o", tmp, "-lm"], capture_output=True,
+                                  text=True)
             if done.returncode == 0:
                 os.replace(tmp, out)
                 return
@@ -77,11 +78,13 @@ def _compile(compiler: str, source: Path, out: Path) -> None:
             os.unlink(tmp)
 
 
-def build(source: Path, what: str, fallback: str, depends: tuple[Path, ...] = ()) -> ctypes.CDLL | None:
+def build(source: Path, what: str, fallback: str, depends: tuple[Path, ...] = (),
+          defines: tuple[str, ...] = ()) -> ctypes.CDLL | None:
     """The library of ``source``, compiled into :func:`cache_dir` on first use, or None where it
     cannot be (warning once per call site's cache: ``what`` names the compiled code, ``fallback``
     says what runs instead, e.g. "it runs in torch, several times slower"). depends: the files
-    ``source`` includes, which take part in the cache key too. A source or depends file that
+    ``source`` includes, which take part in the cache key too. defines: preprocessor definitions
+    (``-DNAME=VALUE``) for a variant of the source, part of the key. A source or depends file that
     cannot be read (an install without it) warns the same way and returns None."""
     if os.environ.get("BSMS_NATIVE", "1") == "0":
         return None
@@ -98,12 +101,12 @@ def build(source: Path, what: str, fallback: str, depends: tuple[Path, ...] = ()
             reason = error.strerror if isinstance(error, OSError) and error.strerror else str(error)
             _warn(what, f"cannot read {file}: {reason}", fallback)
             return None
-    key = hashlib.sha256("\n".join([*texts, compiler, " ".join(FLAGS), platform.machine(),
+    key = hashlib.sha256("\n".join([*texts, compiler, " ".join((*FLAGS, *defines)), platform.machine(),
                                     _cpu_model()]).encode()).hexdigest()[:16]
     path = cache_dir() / f"{source.stem}-{key}.so"
     try:
         if not path.is_file():
-            _compile(compiler, source, path)
+            _compile(compiler, source, path, defines)
         return ctypes.CDLL(str(path))
     except OSError as error:
         _warn(what, str(error), fallback)

@@ -39,7 +39,7 @@ from .mpm.diagnostics import diagnostics
 from .mpm.fused import advance
 from .mpm.inelastic import initial_fields
 from .mpm.kernels import Grid, MeshTables
-from .mpm.model import KERNELS, REFERENCES, TRANSFERS, Grip, Model, WallPlane
+from .mpm.model import KERNELS, PRECISIONS, REFERENCES, TRANSFERS, Grip, Model, WallPlane
 from .mpm.state import State
 from .mpm.step import cfl_time_step, step
 from .mpm.stress import kirchhoff_stress
@@ -53,7 +53,7 @@ SOLVER_DEFAULTS = {
     "kernel": "umls", "transfer": "flip", "dt": None, "cfl": 0.3, "device": "cpu", "dtype": "float64",
     "grid_spacing": None, "extra_layer": True, "layer_thickness": 1.0, "threads": None,
     "reference": "eulerian", "epsilon": 0.01, "fraction": 0.01, "contact_margin": 1.0, "max_substeps": 100_000,
-    "fbar": False,
+    "fbar": False, "precision": "float64",
 }
 # Rough particle-steps per second of one CPU core (docs/solver.md, mpm_throughput.py), only for the time
 # an absurd configuration would take, stated when it is refused.
@@ -96,13 +96,16 @@ def _positive(value, key: str, *, optional=False, integer=False):
 
 def _check_solver(s: dict) -> None:
     for key, allowed in (("kernel", KERNELS), ("transfer", TRANSFERS), ("dtype", _DTYPES),
-                         ("reference", REFERENCES)):
+                         ("reference", REFERENCES), ("precision", PRECISIONS)):
         if s[key] not in allowed:
             choices = ", ".join(sorted(allowed))
             raise ConfigError(f"config key 'solver.{key}' must be one of {choices}, got {s[key]!r}")
     if s["kernel"] == "linear" and s["transfer"] == "apic":
         raise ConfigError("config key 'solver.transfer' cannot be 'apic' with kernel 'linear': the linear hat's "
                           "APIC inertia D_p is singular at mesh nodes; use flip, pic or musl, or kernel umls")
+    if s["precision"] == "float32" and s["dtype"] != "float64":
+        raise ConfigError("config key 'solver.precision' float32 is the compiled substeps' arithmetic over a "
+                          "float64 state; it needs solver.dtype float64 (dtype float32 runs every step in torch)")
     _positive(s["dt"], "solver.dt", optional=True)
     _positive(s["grid_spacing"], "solver.grid_spacing", optional=True)
     _positive(s["layer_thickness"], "solver.layer_thickness")
@@ -279,7 +282,8 @@ def build_solver_model(scene: Scene, solver: dict) -> tuple[Model, State]:
         conditions=tuple(conditions), gravity=torch.as_tensor(gravity, dtype=dtype, device=device),
         node_positions=nodes, h_cfl=float(h_cfl), reference=solver["reference"], epsilon=float(solver["epsilon"]),
         fraction=float(solver["fraction"]), contact_margin=solver["contact_margin"], grips=grips,
-        colliders=tuple(scene.colliders), damping=float(scene.damping), fbar=solver["fbar"], **reference,
+        colliders=tuple(scene.colliders), damping=float(scene.damping), fbar=solver["fbar"],
+        precision=solver["precision"], **reference,
     )
     state = State.at_rest_shape(scene.x, scene.v, scene.volume, scene.density(), device=device, dtype=dtype)
     if scene.initial_F is not None:  # a body that starts deformed (e.g. compressed)

@@ -26,6 +26,13 @@ before changing the state (a particle lost from the mesh, a non-finite result): 
 then raises :class:`~datagen.mpm.errors.SimulationError` with its advice. The Python step is the
 reference: the tests hold every feature of the compiled substeps to it at round-off, and node
 sums use fixed particle blocks, so results do not depend on the thread count.
+**Precision.** ``Model.precision="float32"`` (``solver.precision: float32``) runs a second build of
+the same source (``-DBSMS_REAL=float``, csrc/umls.c's ``real``): the kernel's slots, the stress
+coefficients, the node sums' block copies, the G2P fields and the arithmetic over them in single
+precision; the particle state (x, v, F), the mesh, the cell search and the node velocities stay
+float64, so positions and deformation gradients accumulate their small per-substep increments
+without float32's rounding (at 0.1 m a float32 position resolves 7e-9 m, about the displacement of a
+substep). Steps outside the compiled substeps run in float64. Errors against float64: docs/solver.md.
 ``BSMS_NATIVE=0`` turns it off with the other compiled code; ``BSMS_FUSED=0`` turns off only this
 (every substep a Python step with the compiled kernels, as before it: for comparisons).
 """
@@ -96,11 +103,15 @@ class _Reference(ctypes.Structure):
                 ("tangents", ptr), ("lower", ptr), ("upper", ptr), ("gaps", ptr)]
 
 
+PRECISIONS = {"float64": ((), torch.float64), "float32": (("-DBSMS_REAL=float",), torch.float32)}
+
+
 @functools.cache
-def library() -> ctypes.CDLL | None:
-    """The compiled substeps (built on first use), or None where they cannot be."""
+def library(precision: str = "float64") -> ctypes.CDLL | None:
+    """The compiled substeps (built on first use), or None where they cannot be. precision: the
+    kernel's and the transfers' arithmetic (:attr:`Model.precision`), a build of its own."""
     lib = compiled.build(SOURCE, "compiled substeps", "each substep runs through the Python step, several times "
-                         "slower", depends=DEPENDS)
+                         "slower", depends=DEPENDS, defines=PRECISIONS[precision][0])
     if lib is None:
         return None
     lib.bsms_substeps.argtypes = [ctypes.POINTER(_Plan), i64, f64, ptr, ptr, ptr, ptr, ctypes.POINTER(f64),
@@ -122,7 +133,8 @@ def applies(model: Model, state: State) -> bool:
             and all(type(c) in (Sticky, Slip, SeparatingSlip, Mirror) for c in (*model.conditions, *model.pinned))
             and all(w.kind in _PLANES for w in model.wall_planes or ())
             and state.x.device.type == "cpu" and state.x.dtype == torch.float64
-            and model.node_positions.dtype == torch.float64 and model.dim in (2, 3) and library() is not None)
+            and model.node_positions.dtype == torch.float64 and model.dim in (2, 3)
+            and library(model.precision) is not None)
 
 
 class _Compiled:
@@ -305,8 +317,9 @@ def _eulerian_call(model: Model, state: State, dt: float, steps: int) -> tuple[S
     x, v, F = (t.clone(memory_format=torch.contiguous_format) for t in (state.x, state.v, state.F))
     cell = _relabel(compiled_plan.cell_rank, state.cell).contiguous()
     time, done = f64(state.time), i64(0)
-    code = library().bsms_substeps(ctypes.byref(compiled_plan.plan), steps, dt, x.data_ptr(), v.data_ptr(),
-                                   F.data_ptr(), cell.data_ptr(), ctypes.byref(time), ctypes.byref(done))
+    code = library(model.precision).bsms_substeps(ctypes.byref(compiled_plan.plan), steps, dt, x.data_ptr(),
+                                                  v.data_ptr(), F.data_ptr(), cell.data_ptr(), ctypes.byref(time),
+                                                  ctypes.byref(done))
     _check(code, model, state)
     if done.value:
         cell = _relabel(compiled_plan.cell_order, cell)  # back to the mesh's numbering
@@ -326,9 +339,10 @@ def _reference_call(model: Model, state: State, dt: float, steps: int) -> tuple[
         keep.append(t)
         return t.data_ptr()
 
-    k = ref.kernel
-    R = _Reference(address(k.index), address(k.weight), address(k.grad_axes), address(ref.active, torch.uint8),
-                   address(model.node_positions), ref.wall_gap, model.epsilon, model.fraction,
+    k, real = ref.kernel, PRECISIONS[model.precision][1]
+    R = _Reference(address(k.index), address(k.weight, real), address(k.grad_axes, real),
+                   address(ref.active, torch.uint8), address(model.node_positions), ref.wall_gap, model.epsilon,
+                   model.fraction,
                    model.contact_margin * model.cell_size if model.contact_margin is not None else -1.0,
                    int(model.reference == "adaptive"), len(model.wall_planes or ()),
                    0 if ref.gaps is None else ref.gaps.shape[0], 0)
@@ -343,7 +357,7 @@ def _reference_call(model: Model, state: State, dt: float, steps: int) -> tuple[
     F, Fsn = (linalg.components(t).contiguous().clone() for t in (state.F, ref.Fsn))  # (d, d, P)
     F0s, q = address(linalg.components(ref.F0s)), ref.nodes.contiguous().clone()
     drift, time, done = f64(ref.drift), f64(state.time), i64(0)
-    code = library().bsms_reference_substeps(
+    code = library(model.precision).bsms_reference_substeps(
         ctypes.byref(compiled_plan.plan), ctypes.byref(R), steps, dt, x.data_ptr(), v.data_ptr(), F.data_ptr(),
         Fsn.data_ptr(), F0s, q.data_ptr(), ctypes.byref(drift), ctypes.byref(time), ctypes.byref(done))
     _check(code, model, state)

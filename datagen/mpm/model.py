@@ -24,6 +24,7 @@ KERNELS = {
 }
 TRANSFERS = ("flip", "pic", "apic", "musl")  # their P2G / G2P: datagen.mpm.transfers.SLOT_TRANSFERS
 REFERENCES = ("eulerian", "total", "adaptive")  # A-ULMPM reference configurations: datagen.mpm.reference
+PRECISIONS = ("float64", "float32")  # the compiled substeps' kernel and transfer arithmetic: datagen.mpm.fused
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,6 +49,9 @@ class Model:
     velocities.
     fbar: the F-bar treatment against volumetric locking (:mod:`~datagen.mpm.inelastic`): each
     step's volume change is replaced by its average over the particles' nodal patches.
+    precision: 'float64' | 'float32', the arithmetic of the compiled substeps' kernel, stress
+    coefficients, node sums and G2P (:mod:`~datagen.mpm.fused`); the particle state, the mesh and the
+    node velocities stay float64, and every step outside the compiled substeps runs in the state's dtype.
     """
 
     background: MeshTables | Grid
@@ -68,6 +72,7 @@ class Model:
     colliders: tuple = ()
     damping: float = 0.0
     fbar: bool = False
+    precision: str = "float64"
 
     def __post_init__(self):
         if self.reference not in REFERENCES:
@@ -77,6 +82,8 @@ class Model:
                              f"got {self.epsilon}, {self.fraction}")
         if self.contact_margin is not None and not self.contact_margin >= 0:
             raise ValueError(f"contact_margin must be >= 0 or None, got {self.contact_margin}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"unknown precision {self.precision!r}; choose one of {list(PRECISIONS)}")
         if self.kernel not in KERNELS:
             raise ValueError(f"unknown kernel {self.kernel!r}; choose one of {sorted(KERNELS)}")
         if self.transfer not in TRANSFERS:

@@ -255,7 +255,8 @@ static inline __attribute__((always_inline)) void apply_condition(const Conditio
 /* ----------------------------------------------------------------------------- one substep */
 typedef struct {
     int64_t *index, *cell;
-    double *weight, *grad, *bary, *coef, *sums, *scratch, *v, *v_new, *fields, *xn, *vn, *Fn, *patch, *node, *jac;
+    real *weight, *grad, *coef, *scratch, *fields; /* slots, -V^0 stress, node-sum copies, G2P fields */
+    double *bary, *sums, *v, *v_new, *xn, *vn, *Fn, *patch, *node, *jac;
     int8_t *status;
     uint8_t *negative, *active;
 } Scratch;
@@ -265,12 +266,12 @@ typedef struct {
 static int scratch_alloc(Scratch *W, int64_t P, int64_t K, int64_t d, int64_t N, int kernel) {
     const int64_t rows = 1 + 2 * d;
     memset(W, 0, sizeof *W);
-    W->coef = malloc(sizeof(double) * P * d * d);
+    W->coef = malloc(sizeof(real) * P * d * d);
     W->sums = malloc(sizeof(double) * rows * N);
-    W->scratch = malloc(sizeof(double) * BLOCKS * rows * N);
+    W->scratch = malloc(sizeof(real) * BLOCKS * rows * N);
     W->v = malloc(sizeof(double) * d * N);
     W->v_new = malloc(sizeof(double) * d * N);
-    W->fields = malloc(sizeof(double) * 2 * d * N);
+    W->fields = malloc(sizeof(real) * 2 * d * N);
     W->xn = malloc(sizeof(double) * P * d);
     W->vn = malloc(sizeof(double) * P * d);
     W->Fn = malloc(sizeof(double) * P * d * d);
@@ -283,8 +284,8 @@ static int scratch_alloc(Scratch *W, int64_t P, int64_t K, int64_t d, int64_t N,
     if (kernel) {
         W->index = malloc(sizeof(int64_t) * P * K);
         W->cell = malloc(sizeof(int64_t) * P);
-        W->weight = malloc(sizeof(double) * P * K);
-        W->grad = malloc(sizeof(double) * d * P * K);
+        W->weight = malloc(sizeof(real) * P * K);
+        W->grad = malloc(sizeof(real) * d * P * K);
         W->bary = malloc(sizeof(double) * P * (d + 1));
         W->status = malloc(P);
         W->negative = malloc(P);
@@ -303,21 +304,21 @@ static void scratch_free(Scratch *W) {
  * node-major fields W->fields, [v_new, v_new - v] (c = 2d; PIC: [v_new], c = d): x and v into
  * W->xn, W->vn (datagen.mpm.transfers.g2p_flip / g2p_pic), gv = sum v_new grad w^T. */
 static inline __attribute__((always_inline)) void g2p_particle(const Scratch *W, const int64_t *index,
-                                                               const double *weight, const double *grad,
+                                                               const real *weight, const real *grad,
                                                                int64_t p, int64_t K, int64_t PK, double dt,
-                                                               const double *x, const double *v, double gv[3][3],
+                                                               const double *x, const double *v, real gv[3][3],
                                                                const int64_t c, const int64_t d) {
-    double acc[6] = {0.0};
+    real acc[6] = {0};
     for (int a = 0; a < 3; a++)
-        for (int b = 0; b < 3; b++) gv[a][b] = 0.0;
+        for (int b = 0; b < 3; b++) gv[a][b] = 0;
     for (int64_t k = 0; k < K; k++) {
         const int64_t i = index[p * K + k];
         if (i < 0) continue;
-        const double w = weight[p * K + k];
-        const double *f = W->fields + i * c;
+        const real w = weight[p * K + k];
+        const real *f = W->fields + i * c;
         for (int e = 0; e < c; e++) acc[e] += w * f[e];
         for (int b = 0; b < d; b++) {
-            const double g = grad[b * PK + p * K + k];
+            const real g = grad[b * PK + p * K + k];
             for (int a = 0; a < d; a++) gv[a][b] += f[a] * g;
         }
     }
@@ -332,8 +333,8 @@ static void g2p_fields(const Plan *S, Scratch *W, int64_t c) {
     const int64_t d = S->d, N = S->N;
     for (int64_t i = 0; i < N; i++)
         for (int a = 0; a < d; a++) {
-            W->fields[i * c + a] = W->v_new[a * N + i];
-            if (c > d) W->fields[i * c + d + a] = W->v_new[a * N + i] - W->v[a * N + i];
+            W->fields[i * c + a] = (real)W->v_new[a * N + i];
+            if (c > d) W->fields[i * c + d + a] = (real)(W->v_new[a * N + i] - W->v[a * N + i]);
         }
 }
 

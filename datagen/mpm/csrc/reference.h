@@ -7,7 +7,7 @@
  * adaptive mode's triggers. Particle matrices F, F^{sn}, F^{0s} are stored by component (d, d, P). */
 typedef struct {
     const int64_t *index;
-    const double *weight, *grad; /* (P, K), (P, K), (d, P, K) */
+    const real *weight, *grad;   /* (P, K), (P, K), (d, P, K) */
     const uint8_t *support;      /* (N) the nodes in the kernel's support (Reference.active) */
     const double *rest;          /* (N, d) the background's nodes (q at s) */
     double wall_gap, epsilon, fraction, contact; /* contact: contact_margin h, < 0: no trigger */
@@ -77,15 +77,15 @@ static int reference_substep(const Plan *S, const Reference *R, Scratch *W, int6
             for (int b = 0; b < d; b++) {
                 double sum = 0.0;
                 for (int c = 0; c < d; c++) sum += tau[a * d + c] * Si[b * d + c];
-                W->coef[p * dd + a * d + b] = sum;
+                W->coef[p * dd + a * d + b] = (real)sum;
             }
     }
 #pragma omp parallel num_threads(S->threads)
     {
 #pragma omp for schedule(static)
         for (int64_t block = 0; block < BLOCKS; block++) {
-            double *out = W->scratch + block * rows * N;
-            for (int64_t j = 0; j < rows * N; j++) out[j] = 0.0;
+            real *out = W->scratch + block * rows * N;
+            for (int64_t j = 0; j < rows * N; j++) out[j] = 0;
             for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++)
                 p2g_particle(p, K, K, d, PK, R->index, R->weight, R->grad, 0, S->mass, v, W->coef, 0, out);
         }
@@ -98,7 +98,8 @@ static int reference_substep(const Plan *S, const Reference *R, Scratch *W, int6
     g2p_fields(S, W, c);
 #pragma omp parallel for schedule(static) num_threads(S->threads)
     for (int64_t p = 0; p < P; p++) { /* G2P, F^{sn} += dt grad_s v, F = F^{sn} F^{0s} */
-        double gv[3][3], Sn[9], Z[9];
+        real gv[3][3];
+        double Sn[9], Z[9];
         g2p_particle(W, R->index, R->weight, R->grad, p, K, PK, dt, x, v, gv, c, d);
         for (int a = 0; a < d; a++)
             for (int b = 0; b < d; b++) {

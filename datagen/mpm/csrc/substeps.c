@@ -76,7 +76,9 @@ static inline __attribute__((always_inline)) int locate_and_stress(const Plan *S
                                                                    const int64_t *cell_in, const int64_t d) {
     W->cell[p] = locate_one(&S->locator, d, x + p * d, cell_in[p], W->bary + p * (d + 1));
     W->status[p] = W->cell[p] >= 0 ? 0 : 1;
-    force_coef(S, p, F + p * d * d, W->coef + p * d * d);
+    double coef[9];
+    force_coef(S, p, F + p * d * d, coef);
+    for (int k = 0; k < d * d; k++) W->coef[p * d * d + k] = (real)coef[k];
     return W->cell[p] < 0;
 }
 
@@ -183,14 +185,14 @@ static void nonnegative_one(const Plan *S, Scratch *W, int64_t p, const double *
             done = 1;
     }
     for (int64_t k = 0; k < K; k++) {
-        W->weight[p * K + k] = done ? weight[k] : start[k];
-        for (int a = 0; a < d; a++) W->grad[a * PK + p * K + k] = done ? grad[a][k] : sg[a][k];
+        W->weight[p * K + k] = (real)(done ? weight[k] : start[k]);
+        for (int a = 0; a < d; a++) W->grad[a * PK + p * K + k] = (real)(done ? grad[a][k] : sg[a][k]);
     }
 }
 
 static inline __attribute__((always_inline)) void kernel_and_p2g(const Plan *S, Scratch *W, int64_t p,
-                                                                 const double *x, const double *v, double *out,
-                                                                 double (*r)[S->K], double *s, const int64_t d) {
+                                                                 const double *x, const double *v, real *out,
+                                                                 real (*r)[S->K], real *s, const int64_t d) {
     const int64_t K = S->K;
     int64_t used = kernel_one(p, S->P, K, d, 1, S->inv_h, x, W->cell, W->status, W->bary, S->ring, S->adjacency,
                               S->nodes, W->index, W->weight, W->grad, r, s, W->negative + p);
@@ -205,7 +207,7 @@ static inline __attribute__((always_inline)) void kernel_and_p2g(const Plan *S, 
 static inline __attribute__((always_inline)) void g2p_one(const Plan *S, Scratch *W, int64_t p, double dt,
                                                           const double *x, const double *v, const double *F,
                                                           const int64_t c, const int64_t d) {
-    double gv[3][3];
+    real gv[3][3];
     g2p_particle(W, W->index, W->weight, W->grad, p, S->K, S->P * S->K, dt, x, v, gv, c, d);
     const double *Fp = F + p * d * d;
     for (int a = 0; a < d; a++)
@@ -232,11 +234,11 @@ static int substep(const Plan *S, Scratch *W, int64_t step, double dt, const dou
     /* lines 1-3: the kernel and P2G [m, p, f_int] in one pass (bsms_umls_p2g's blocks) */
 #pragma omp parallel num_threads(S->threads)
     {
-        double r[3][K], s[K];
+        real r[3][K], s[K];
 #pragma omp for schedule(static)
         for (int64_t block = 0; block < BLOCKS; block++) {
-            double *out = W->scratch + block * rows * N;
-            for (int64_t j = 0; j < rows * N; j++) out[j] = 0.0;
+            real *out = W->scratch + block * rows * N;
+            for (int64_t j = 0; j < rows * N; j++) out[j] = 0;
             for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++) {
 #define CALL(D) kernel_and_p2g(S, W, p, x, v, out, r, s, D)
                 DIMS(d, CALL);

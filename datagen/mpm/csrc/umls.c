@@ -4,13 +4,25 @@
  *
  * Built on first use by datagen/mpm/native.py (cc -O3 -march=native -fopenmp -shared) and called
  * through ctypes; the torch code stays the reference (tests compare the two) and the fallback.
- * Arrays are C-contiguous float64 / int64 in the layouts of KernelResult: slot fields (P, K),
+ * Arrays are C-contiguous float64 / int64 in the layouts of KernelResult (slot weights, gradients
+ * and offsets, stress coefficients and node-sum copies in `real`, below): slot fields (P, K),
  * per-axis slot fields (d, P, K), -1 marking an empty slot. Every loop runs over particles
  * (OpenMP, static schedule); P2G sums into copies of the nodes over fixed particle blocks, added
  * in a fixed order, so that results do not depend on the number of threads.
  */
 #include <math.h>
 #include <stdint.h>
+#include <tgmath.h>
+
+/* `real`: the precision of the kernel's slots (weights, gradients), the stress coefficients, the
+ * node sums' block copies and the G2P fields, and of the arithmetic over them -- double by default,
+ * float where compiled with -DBSMS_REAL=float (datagen/mpm/fused.py's float32 build). Particle
+ * positions, velocities, deformation gradients, the mesh and the node velocities stay double. */
+#ifndef BSMS_REAL
+#define BSMS_REAL double
+#endif
+typedef BSMS_REAL real;
+#define RC(c) ((real)(c))  /* a constant in `real`, so float arithmetic is not widened to double */
 
 #define AHEAD 4  /* particles ahead whose cell tables are prefetched */
 
@@ -42,8 +54,8 @@ static inline __attribute__((always_inline)) int64_t kernel_one(int64_t p, int64
                                  const double *restrict x, const int64_t *restrict cell,
                                  const int8_t *restrict status, const double *restrict bary,
                                  const int64_t *restrict ring, const uint8_t *restrict adjacency,
-                                 const double *restrict nodes, int64_t *restrict index, double *restrict weight,
-                                 double *restrict grad, double (*restrict r)[K], double *restrict s, uint8_t *neg) {
+                                 const double *restrict nodes, int64_t *restrict index, real *restrict weight,
+                                 real *restrict grad, real (*restrict r)[K], real *restrict s, uint8_t *neg) {
     const int64_t PK = P * K;
     if (p + AHEAD < P && status[p + AHEAD] == 0) {  /* cells are scattered in memory: fetch early */
         const int64_t next = cell[p + AHEAD];
@@ -59,35 +71,37 @@ static inline __attribute__((always_inline)) int64_t kernel_one(int64_t p, int64
     const uint8_t *adj_c = adjacency + (c >= 0 ? c : 0) * (d + 1) * K;
     const double *xp = x + p * d, *bp = bary + p * (d + 1);
     int64_t *ip = index + p * K;
-    double *wp = weight + p * K;
+    real *wp = weight + p * K;
     for (int64_t k = 0; k < used; k++) ip[k] = ring_c[k];
     for (int64_t k = used; k < K; k++) ip[k] = -1;
-    for (int a = 0; a < d; a++)
-        for (int64_t k = 0; k < used; k++) r[a][k] = nodes[ring_c[k] * d + a] - xp[a];
-    double total = 0.0;
+    for (int a = 0; a < d; a++)  /* the offsets are differences of doubles, rounded once */
+        for (int64_t k = 0; k < used; k++) r[a][k] = (real)(nodes[ring_c[k] * d + a] - xp[a]);
+    const real ih = (real)inv_h, b0 = (real)bp[0], b1 = (real)bp[1], b2 = d > 1 ? (real)bp[2] : RC(0),
+               b3 = d > 2 ? (real)bp[3] : RC(0), bb[4] = {b0, b1, b2, b3};
+    real total = 0;
 #pragma omp simd reduction(+:total)
     for (int64_t k = 0; k < used; k++) {  /* d_i = N(|r| / h) eta_i (UMLS eq. 32) */
-        double q2 = r[0][k] * r[0][k];
+        real q2 = r[0][k] * r[0][k];
         for (int a = 1; a < d; a++) q2 += r[a][k] * r[a][k];
-        const double q = sqrt(q2) * inv_h, t = 1.5 - q;
-        double w = q < 0.5 ? 0.75 - q * q : (q < 1.5 ? 0.5 * t * t : 0.0);
+        const real q = sqrt(q2) * ih, t = RC(1.5) - q;
+        real w = q < RC(0.5) ? RC(0.75) - q * q : (q < RC(1.5) ? RC(0.5) * t * t : RC(0));
         if (use_eta) {
-            double eta = 0.0;
-            for (int n = 0; n <= d; n++) eta += bp[n] * (double)adj_c[n * K + k];
+            real eta = 0;
+            for (int n = 0; n <= d; n++) eta += bb[n] * (real)adj_c[n * K + k];
             w *= eta;
         }
         s[k] = w;
         total += w;
     }
     *neg = 0;
-    if (!(total > 0.0)) {  /* lost particle: zero kernel */
-        for (int64_t k = 0; k < K; k++) wp[k] = 0.0;
+    if (!(total > 0)) {  /* lost particle: zero kernel */
+        for (int64_t k = 0; k < K; k++) wp[k] = 0;
         for (int a = 0; a < d; a++)
-            for (int64_t k = 0; k < K; k++) grad[a * PK + p * K + k] = 0.0;
+            for (int64_t k = 0; k < K; k++) grad[a * PK + p * K + k] = 0;
         return 0;
     }
-    const double inv_total = 1.0 / total;
-    double m0 = 0.0, m1 = 0.0, m2 = 0.0;  /* mean offset (UMLS eqs. 22-29, block form) */
+    const real inv_total = RC(1) / total;
+    real m0 = 0, m1 = 0, m2 = 0;  /* mean offset (UMLS eqs. 22-29, block form) */
 #pragma omp simd reduction(+:m0, m1, m2)
     for (int64_t k = 0; k < used; k++) {
         s[k] *= inv_total;  /* d_i / S */
@@ -95,25 +109,28 @@ static inline __attribute__((always_inline)) int64_t kernel_one(int64_t p, int64
         if (d > 1) m1 += s[k] * r[1][k];
         if (d > 2) m2 += s[k] * r[2][k];
     }
-    const double m[3] = {m0, m1, m2};
-    double q00 = 0.0, q01 = 0.0, q02 = 0.0, q11 = 0.0, q12 = 0.0, q22 = 0.0;  /* covariance Q */
+    const real m[3] = {m0, m1, m2};
+    real q00 = 0, q01 = 0, q02 = 0, q11 = 0, q12 = 0, q22 = 0;  /* covariance Q */
 #pragma omp simd reduction(+:q00, q01, q02, q11, q12, q22)
     for (int64_t k = 0; k < used; k++) {
-        const double a0 = r[0][k] - m0, a1 = d > 1 ? r[1][k] - m1 : 0.0, a2 = d > 2 ? r[2][k] - m2 : 0.0;
+        const real a0 = r[0][k] - m0, a1 = d > 1 ? r[1][k] - m1 : RC(0), a2 = d > 2 ? r[2][k] - m2 : RC(0);
         r[0][k] = a0; r[1][k] = a1; r[2][k] = a2;
         q00 += s[k] * a0 * a0; q01 += s[k] * a0 * a1; q02 += s[k] * a0 * a2;
         q11 += s[k] * a1 * a1; q12 += s[k] * a1 * a2; q22 += s[k] * a2 * a2;
     }
-    const double q[3][3] = {{q00, q01, q02}, {q01, q11, q12}, {q02, q12, q22}};
-    double qi[3][3];
-    inverse((int)d, q, qi);
+    const double q[3][3] = {{q00, q01, q02}, {q01, q11, q12}, {q02, q12, q22}};  /* inverted in double */
+    double qd[3][3];
+    inverse((int)d, q, qd);
+    real qi[3][3];
+    for (int a = 0; a < 3; a++)
+        for (int b = 0; b < 3; b++) qi[a][b] = (real)qd[a][b];
     uint8_t negative = 0;
-    double *g0 = grad + p * K, *g1 = grad + PK + p * K, *g2 = grad + 2 * PK + p * K;
+    real *g0 = grad + p * K, *g1 = grad + PK + p * K, *g2 = grad + 2 * PK + p * K;
     for (int64_t k = 0; k < used; k++) {  /* grad w_i = d_i/S Q^-1 (r_i - m), w_i = d_i/S - m . grad w_i */
-        double w = s[k];
-        double ga[3] = {0.0, 0.0, 0.0};
+        real w = s[k];
+        real ga[3] = {0, 0, 0};
         for (int a = 0; a < d; a++) {
-            double g = 0.0;
+            real g = 0;
             for (int b = 0; b < d; b++) g += qi[a][b] * r[b][k];
             ga[a] = g * s[k];
             w -= ga[a] * m[a];
@@ -122,11 +139,11 @@ static inline __attribute__((always_inline)) int64_t kernel_one(int64_t p, int64
         if (d > 1) g1[k] = ga[1];
         if (d > 2) g2[k] = ga[2];
         wp[k] = w;
-        negative |= w < 0.0;
+        negative |= w < 0;
     }
-    for (int64_t k = used; k < K; k++) wp[k] = 0.0;
+    for (int64_t k = used; k < K; k++) wp[k] = 0;
     for (int a = 0; a < d; a++)
-        for (int64_t k = used; k < K; k++) grad[a * PK + p * K + k] = 0.0;
+        for (int64_t k = used; k < K; k++) grad[a * PK + p * K + k] = 0;
     *neg = negative;
     return used;
 }
@@ -139,12 +156,12 @@ int bsms_umls_weights(int64_t P, int64_t K, int64_t d, int64_t use_eta, double i
                       const double *restrict x, const int64_t *restrict cell, const int8_t *restrict status,
                       const double *restrict bary, const int64_t *restrict ring,
                       const uint8_t *restrict adjacency, const double *restrict nodes,
-                      int64_t *restrict index, double *restrict weight, double *restrict grad,
+                      int64_t *restrict index, real *restrict weight, real *restrict grad,
                       uint8_t *restrict negative, int64_t threads) {
     if (d < 1 || d > 3) return 1;
 #pragma omp parallel num_threads(threads)
     {
-        double r[3][K], s[K];  /* this particle's offsets x_i - x_p and sample weights d_i */
+        real r[3][K], s[K];  /* this particle's offsets x_i - x_p and sample weights d_i */
 #pragma omp for schedule(static)
         for (int64_t p = 0; p < P; p++)
             kernel_one(p, P, K, d, use_eta, inv_h, x, cell, status, bary, ring, adjacency, nodes, index,
@@ -158,34 +175,37 @@ int bsms_umls_weights(int64_t P, int64_t K, int64_t d, int64_t use_eta, double i
  * C (P, d, d) the APIC matrix or NULL, r the slot offsets (d, P, K) (read only with C).
  * Empty slots (index < 0) are skipped. The particles are cut into BLOCKS fixed ranges, each
  * summed in particle order into its own node-major copy of the nodes (scratch: BLOCKS x N x
- * (1+2d) doubles; one slot touches one or two cache lines), and the copies are added in block
+ * (1+2d) reals; one slot touches one or two cache lines), and the copies are added in block
  * order: the result does not depend on the number of threads. */
 #define BLOCKS 4
 
 /* P2G of particle p's first `slots` slots into the node-major block copy `out` (N x (1+2d)). */
 static inline __attribute__((always_inline)) void p2g_particle(int64_t p, int64_t slots, int64_t K, int64_t d, int64_t PK,
-                                const int64_t *restrict index, const double *restrict weight,
-                                const double *restrict grad, const double *restrict offset,
-                                const double *restrict mass, const double *restrict v, const double *restrict coef,
-                                const double *restrict affine, double *restrict out) {
+                                const int64_t *restrict index, const real *restrict weight,
+                                const real *restrict grad, const real *restrict offset,
+                                const double *restrict mass, const double *restrict v, const real *restrict coef,
+                                const double *restrict affine, real *restrict out) {
     const int64_t rows = 1 + 2 * d;
-    const double *vp = v + p * d, *cp = coef + p * d * d, *ap = affine ? affine + p * d * d : 0;
+    const real *cp = coef + p * d * d, mp = (real)mass[p];
+    const double *ap = affine ? affine + p * d * d : 0;
+    real vp[3];
+    for (int a = 0; a < d; a++) vp[a] = (real)v[p * d + a];
     for (int64_t k = 0; k < slots; k++) {
         const int64_t i = index[p * K + k];
         if (i < 0) continue;
         const int64_t s = p * K + k;
-        const double wm = weight[s] * mass[p];
-        double g[3], r[3];
+        const real wm = weight[s] * mp;
+        real g[3], r[3];
         for (int b = 0; b < d; b++) {
             g[b] = grad[b * PK + s];
-            r[b] = ap ? offset[b * PK + s] : 0.0;
+            r[b] = ap ? offset[b * PK + s] : 0;
         }
-        double *node = out + i * rows;
+        real *node = out + i * rows;
         node[0] += wm;
         for (int a = 0; a < d; a++) {
-            double vel = vp[a], f = 0.0;
+            real vel = vp[a], f = 0;
             for (int b = 0; b < d; b++) {
-                if (ap) vel += ap[a * d + b] * r[b];
+                if (ap) vel += (real)ap[a * d + b] * r[b];
                 f += cp[a * d + b] * g[b];
             }
             node[1 + a] += wm * vel;
@@ -196,7 +216,7 @@ static inline __attribute__((always_inline)) void p2g_particle(int64_t p, int64_
 
 /* sums (rows, N) = the BLOCKS node-major copies in scratch added in block order. Called inside a
  * parallel region (the loop over nodes is shared among its threads). */
-static void add_blocks(int64_t N, int64_t rows, const double *restrict scratch, double *restrict sums) {
+static void add_blocks(int64_t N, int64_t rows, const real *restrict scratch, double *restrict sums) {
 #pragma omp for schedule(static)
     for (int64_t i = 0; i < N; i++)
         for (int64_t j = 0; j < rows; j++) {
@@ -207,18 +227,18 @@ static void add_blocks(int64_t N, int64_t rows, const double *restrict scratch, 
 }
 
 int bsms_p2g(int64_t P, int64_t K, int64_t d, int64_t N,
-             const int64_t *restrict index, const double *restrict weight, const double *restrict grad,
-             const double *restrict offset, const double *restrict mass, const double *restrict v,
-             const double *restrict coef, const double *restrict affine, double *restrict sums,
-             double *restrict scratch, int64_t threads) {
+             const int64_t *restrict index, const real *restrict weight, const real *restrict grad,
+             const real *restrict offset, const double *restrict mass, const double *restrict v,
+             const real *restrict coef, const double *restrict affine, double *restrict sums,
+             real *restrict scratch, int64_t threads) {
     if (d < 1 || d > 3) return 1;
     const int64_t PK = P * K, rows = 1 + 2 * d;
 #pragma omp parallel num_threads(threads)
     {
 #pragma omp for schedule(static)
         for (int64_t block = 0; block < BLOCKS; block++) {
-            double *out = scratch + block * rows * N;
-            for (int64_t j = 0; j < rows * N; j++) out[j] = 0.0;
+            real *out = scratch + block * rows * N;
+            for (int64_t j = 0; j < rows * N; j++) out[j] = 0;
             for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++)
                 p2g_particle(p, K, K, d, PK, index, weight, grad, offset, mass, v, coef, affine, out);
         }
@@ -236,18 +256,18 @@ int bsms_umls_p2g(int64_t P, int64_t K, int64_t d, int64_t use_eta, double inv_h
                   const double *restrict x, const int64_t *restrict cell, const int8_t *restrict status,
                   const double *restrict bary, const int64_t *restrict ring,
                   const uint8_t *restrict adjacency, const double *restrict nodes,
-                  int64_t *restrict index, double *restrict weight, double *restrict grad,
+                  int64_t *restrict index, real *restrict weight, real *restrict grad,
                   uint8_t *restrict negative, int64_t N, const double *restrict mass, const double *restrict v,
-                  const double *restrict coef, double *restrict sums, double *restrict scratch, int64_t threads) {
+                  const real *restrict coef, double *restrict sums, real *restrict scratch, int64_t threads) {
     if (d < 1 || d > 3) return 1;
     const int64_t PK = P * K, rows = 1 + 2 * d;
 #pragma omp parallel num_threads(threads)
     {
-        double r[3][K], s[K];
+        real r[3][K], s[K];
 #pragma omp for schedule(static)
         for (int64_t block = 0; block < BLOCKS; block++) {
-            double *out = scratch + block * rows * N;
-            for (int64_t j = 0; j < rows * N; j++) out[j] = 0.0;
+            real *out = scratch + block * rows * N;
+            for (int64_t j = 0; j < rows * N; j++) out[j] = 0;
             for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++) {
                 const int64_t used = kernel_one(p, P, K, d, use_eta, inv_h, x, cell, status, bary, ring,
                                                 adjacency, nodes, index, weight, grad, r, s, negative + p);
@@ -264,8 +284,8 @@ int bsms_umls_p2g(int64_t P, int64_t K, int64_t d, int64_t use_eta, double inv_h
  *   interp (P, c) = sum_k w f_i;  grad_v (P, d, d) = sum_k v_i (x) grad w  (v = the first d fields);
  *   moment (P, d, d) = sum_k w v_i (x) r  (APIC's B; skipped when moment is NULL). */
 int bsms_g2p(int64_t P, int64_t K, int64_t d, int64_t N, int64_t c,
-             const int64_t *restrict index, const double *restrict weight, const double *restrict grad,
-             const double *restrict offset, const double *restrict field, double *restrict interp,
+             const int64_t *restrict index, const real *restrict weight, const real *restrict grad,
+             const real *restrict offset, const double *restrict field, double *restrict interp,
              double *restrict grad_v, double *restrict moment, int64_t threads) {
     if (d < 1 || d > 3 || c < d || c > 8 || N < 0) return 1;
     const int64_t PK = P * K;
@@ -345,7 +365,7 @@ int bsms_locate_guess(int64_t P, int64_t d, double tol, const double *restrict x
  * out_p = sum w+ u_i / sum w+. Node sums by fixed particle blocks as in P2G (scratch: BLOCKS x N
  * x 2 doubles); node: N doubles. */
 int bsms_patch_average(int64_t P, int64_t K, int64_t N, const int64_t *restrict index,
-                       const double *restrict weight, const double *restrict value, const double *restrict volume,
+                       const real *restrict weight, const double *restrict value, const double *restrict volume,
                        double *restrict scratch, double *restrict node, double *restrict out, int64_t threads) {
 #pragma omp parallel num_threads(threads)
     {
