@@ -21,7 +21,7 @@ from pathlib import Path
 
 __all__ = ["FLAGS", "cache_dir", "build", "cpu_summary"]
 
-FLAGS = ("-O3", "-march=native", "-fPIC", "-shared", "-fopenmp")
+FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-fPIC", "-shared", "-fopenmp")
 
 
 def cache_dir() -> Path:

@@ -9,6 +9,10 @@ enum { STICKY = 0, SLIP = 1, SEPARATING = 2, MIRROR = 3, COLLIDERS = 4 };
 enum { DONE = 0, LOST = 1, NONFINITE = 3, NOMEM = 4, BADSHAPE = 5, STALE_STRAIN = 6, STALE_CONTACT = 7 };
 enum { LINEAR = 0, NEO_HOOKEAN = 1, FIXED_COROTATED = 2 };
 enum { DISK = 0, BOX = 1, WEDGE = 2 };
+/* The row stride of the node-sum block copies and the G2P fields, in reals: a node's 1+2d <= 7
+ * values padded to 8 and the arrays 64-byte aligned, so that a slot's scatter or gather touches one
+ * cache line. */
+#define ROW 8
 
 /* One boundary condition of datagen.mpm.boundary (or, kind COLLIDERS, the place of the colliders
  * in the order). Mirror: ghosts = nodes, sources (count, per) and weights; wall (wall_count) the
@@ -261,6 +265,11 @@ typedef struct {
     uint8_t *negative, *active;
 } Scratch;
 
+/* malloc of `bytes` on a 64-byte boundary (a cache line). */
+static void *aligned(size_t bytes) {
+    return aligned_alloc(64, (bytes + 63) / 64 * 64);
+}
+
 /* Allocate a substep's scratch for P particles of K slots and N nodes (kernel: the eulerian step's
  * kernel slots and cell search too); 0 where memory runs out (scratch_free releases what was got). */
 static int scratch_alloc(Scratch *W, int64_t P, int64_t K, int64_t d, int64_t N, int kernel) {
@@ -268,10 +277,10 @@ static int scratch_alloc(Scratch *W, int64_t P, int64_t K, int64_t d, int64_t N,
     memset(W, 0, sizeof *W);
     W->coef = malloc(sizeof(real) * P * d * d);
     W->sums = malloc(sizeof(double) * rows * N);
-    W->scratch = malloc(sizeof(real) * BLOCKS * rows * N);
+    W->scratch = aligned(sizeof(real) * BLOCKS * ROW * N);
     W->v = malloc(sizeof(double) * d * N);
     W->v_new = malloc(sizeof(double) * d * N);
-    W->fields = malloc(sizeof(real) * 2 * d * N);
+    W->fields = aligned(sizeof(real) * ROW * N);
     W->xn = malloc(sizeof(double) * P * d);
     W->vn = malloc(sizeof(double) * P * d);
     W->Fn = malloc(sizeof(double) * P * d * d);
@@ -315,7 +324,7 @@ static inline __attribute__((always_inline)) void g2p_particle(const Scratch *W,
         const int64_t i = index[p * K + k];
         if (i < 0) continue;
         const real w = weight[p * K + k];
-        const real *f = W->fields + i * c;
+        const real *f = W->fields + i * ROW;
         for (int e = 0; e < c; e++) acc[e] += w * f[e];
         for (int b = 0; b < d; b++) {
             const real g = grad[b * PK + p * K + k];
@@ -333,8 +342,8 @@ static void g2p_fields(const Plan *S, Scratch *W, int64_t c) {
     const int64_t d = S->d, N = S->N;
     for (int64_t i = 0; i < N; i++)
         for (int a = 0; a < d; a++) {
-            W->fields[i * c + a] = (real)W->v_new[a * N + i];
-            if (c > d) W->fields[i * c + d + a] = (real)(W->v_new[a * N + i] - W->v[a * N + i]);
+            W->fields[i * ROW + a] = (real)W->v_new[a * N + i];
+            if (c > d) W->fields[i * ROW + d + a] = (real)(W->v_new[a * N + i] - W->v[a * N + i]);
         }
 }
 

@@ -84,12 +84,12 @@ static int reference_substep(const Plan *S, const Reference *R, Scratch *W, int6
     {
 #pragma omp for schedule(static)
         for (int64_t block = 0; block < BLOCKS; block++) {
-            real *out = W->scratch + block * rows * N;
-            for (int64_t j = 0; j < rows * N; j++) out[j] = 0;
+            real *out = W->scratch + block * ROW * N;
+            for (int64_t j = 0; j < ROW * N; j++) out[j] = 0;
             for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++)
-                p2g_particle(p, K, K, d, PK, R->index, R->weight, R->grad, 0, S->mass, v, W->coef, 0, out);
+                p2g_particle(p, K, K, d, PK, R->index, R->weight, R->grad, 0, S->mass, v, W->coef, 0, out, ROW);
         }
-        add_blocks(N, rows, W->scratch, W->sums);
+        add_blocks(N, rows, ROW, W->scratch, W->sums);
     }
     nodal_velocities(S, W, dt);
     apply_planes(S, R, q, W->v_new); /* walls on the moved node positions, first (datagen.mpm.nodal.constrain) */

@@ -200,7 +200,7 @@ static inline __attribute__((always_inline)) void kernel_and_p2g(const Plan *S, 
         nonnegative_one(S, W, p, x);
         used = K;
     }
-    p2g_particle(p, used, K, d, S->P * K, W->index, W->weight, W->grad, 0, S->mass, v, W->coef, 0, out);
+    p2g_particle(p, used, K, d, S->P * K, W->index, W->weight, W->grad, 0, S->mass, v, W->coef, 0, out, ROW);
 }
 
 /* Eulerian G2P of particle p and F <- F + dt grad_v F (UMLS eq. 17). */
@@ -237,15 +237,15 @@ static int substep(const Plan *S, Scratch *W, int64_t step, double dt, const dou
         real r[3][K], s[K];
 #pragma omp for schedule(static)
         for (int64_t block = 0; block < BLOCKS; block++) {
-            real *out = W->scratch + block * rows * N;
-            for (int64_t j = 0; j < rows * N; j++) out[j] = 0;
+            real *out = W->scratch + block * ROW * N;
+            for (int64_t j = 0; j < ROW * N; j++) out[j] = 0;
             for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++) {
 #define CALL(D) kernel_and_p2g(S, W, p, x, v, out, r, s, D)
                 DIMS(d, CALL);
 #undef CALL
             }
         }
-        add_blocks(N, rows, W->scratch, W->sums);
+        add_blocks(N, rows, ROW, W->scratch, W->sums);
     }
     nodal_velocities(S, W, dt);
     nodal_constrain(S, W, step, S->nodes);

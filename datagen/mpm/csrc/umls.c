@@ -74,22 +74,29 @@ static inline __attribute__((always_inline)) int64_t kernel_one(int64_t p, int64
     real *wp = weight + p * K;
     for (int64_t k = 0; k < used; k++) ip[k] = ring_c[k];
     for (int64_t k = used; k < K; k++) ip[k] = -1;
-    for (int a = 0; a < d; a++)  /* the offsets are differences of doubles, rounded once */
-        for (int64_t k = 0; k < used; k++) r[a][k] = (real)(nodes[ring_c[k] * d + a] - xp[a]);
+    for (int64_t k = 0; k < used; k++) {  /* the offsets: differences of doubles, rounded once */
+        const double *node = nodes + ring_c[k] * d;
+        for (int a = 0; a < d; a++) r[a][k] = (real)(node[a] - xp[a]);
+    }
+    /* d_i = N(|r| / h) eta_i (UMLS eq. 32), written without inner loops or branches so that it
+     * vectorises over the slots; the same operations in the same order as the Python kernel */
     const real ih = (real)inv_h, b0 = (real)bp[0], b1 = (real)bp[1], b2 = d > 1 ? (real)bp[2] : RC(0),
-               b3 = d > 2 ? (real)bp[3] : RC(0), bb[4] = {b0, b1, b2, b3};
+               b3 = d > 2 ? (real)bp[3] : RC(0);
+    const uint8_t *e0 = adj_c, *e1 = adj_c + K, *e2 = d > 1 ? adj_c + 2 * K : adj_c,
+                  *e3 = d > 2 ? adj_c + 3 * K : adj_c;
     real total = 0;
 #pragma omp simd reduction(+:total)
-    for (int64_t k = 0; k < used; k++) {  /* d_i = N(|r| / h) eta_i (UMLS eq. 32) */
+    for (int64_t k = 0; k < used; k++) {
         real q2 = r[0][k] * r[0][k];
-        for (int a = 1; a < d; a++) q2 += r[a][k] * r[a][k];
+        if (d > 1) q2 += r[1][k] * r[1][k];
+        if (d > 2) q2 += r[2][k] * r[2][k];
         const real q = sqrt(q2) * ih, t = RC(1.5) - q;
-        real w = q < RC(0.5) ? RC(0.75) - q * q : (q < RC(1.5) ? RC(0.5) * t * t : RC(0));
-        if (use_eta) {
-            real eta = 0;
-            for (int n = 0; n <= d; n++) eta += bb[n] * (real)adj_c[n * K + k];
-            w *= eta;
-        }
+        real w = q < RC(0.5) ? RC(0.75) - q * q : RC(0.5) * t * t;
+        w = q < RC(1.5) ? w : RC(0);
+        real eta = b0 * (real)e0[k] + b1 * (real)e1[k];  /* read always: a branch would stop vectorising */
+        if (d > 1) eta += b2 * (real)e2[k];
+        if (d > 2) eta += b3 * (real)e3[k];
+        w = use_eta ? w * eta : w;
         s[k] = w;
         total += w;
     }
@@ -119,7 +126,7 @@ static inline __attribute__((always_inline)) int64_t kernel_one(int64_t p, int64
         q11 += s[k] * a1 * a1; q12 += s[k] * a1 * a2; q22 += s[k] * a2 * a2;
     }
     const double q[3][3] = {{q00, q01, q02}, {q01, q11, q12}, {q02, q12, q22}};  /* inverted in double */
-    double qd[3][3];
+    double qd[3][3] = {{0.0}};
     inverse((int)d, q, qd);
     real qi[3][3];
     for (int a = 0; a < 3; a++)
@@ -179,13 +186,13 @@ int bsms_umls_weights(int64_t P, int64_t K, int64_t d, int64_t use_eta, double i
  * order: the result does not depend on the number of threads. */
 #define BLOCKS 4
 
-/* P2G of particle p's first `slots` slots into the node-major block copy `out` (N x (1+2d)). */
+/* P2G of particle p's first `slots` slots into the node-major block copy `out` (N rows of `stride`
+ * >= 1+2d reals). */
 static inline __attribute__((always_inline)) void p2g_particle(int64_t p, int64_t slots, int64_t K, int64_t d, int64_t PK,
                                 const int64_t *restrict index, const real *restrict weight,
                                 const real *restrict grad, const real *restrict offset,
                                 const double *restrict mass, const double *restrict v, const real *restrict coef,
-                                const double *restrict affine, real *restrict out) {
-    const int64_t rows = 1 + 2 * d;
+                                const double *restrict affine, real *restrict out, int64_t stride) {
     const real *cp = coef + p * d * d, mp = (real)mass[p];
     const double *ap = affine ? affine + p * d * d : 0;
     real vp[3];
@@ -200,7 +207,7 @@ static inline __attribute__((always_inline)) void p2g_particle(int64_t p, int64_
             g[b] = grad[b * PK + s];
             r[b] = ap ? offset[b * PK + s] : 0;
         }
-        real *node = out + i * rows;
+        real *node = out + i * stride;
         node[0] += wm;
         for (int a = 0; a < d; a++) {
             real vel = vp[a], f = 0;
@@ -214,14 +221,15 @@ static inline __attribute__((always_inline)) void p2g_particle(int64_t p, int64_
     }
 }
 
-/* sums (rows, N) = the BLOCKS node-major copies in scratch added in block order. Called inside a
- * parallel region (the loop over nodes is shared among its threads). */
-static void add_blocks(int64_t N, int64_t rows, const real *restrict scratch, double *restrict sums) {
+/* sums (rows, N) = the BLOCKS node-major copies in scratch (rows of `stride`) added in block order.
+ * Called inside a parallel region (the loop over nodes is shared among its threads). */
+static void add_blocks(int64_t N, int64_t rows, int64_t stride, const real *restrict scratch,
+                       double *restrict sums) {
 #pragma omp for schedule(static)
     for (int64_t i = 0; i < N; i++)
         for (int64_t j = 0; j < rows; j++) {
             double total = 0.0;
-            for (int64_t block = 0; block < BLOCKS; block++) total += scratch[(block * N + i) * rows + j];
+            for (int64_t block = 0; block < BLOCKS; block++) total += scratch[(block * N + i) * stride + j];
             sums[j * N + i] = total;
         }
 }
@@ -240,9 +248,9 @@ int bsms_p2g(int64_t P, int64_t K, int64_t d, int64_t N,
             real *out = scratch + block * rows * N;
             for (int64_t j = 0; j < rows * N; j++) out[j] = 0;
             for (int64_t p = block * P / BLOCKS; p < (block + 1) * P / BLOCKS; p++)
-                p2g_particle(p, K, K, d, PK, index, weight, grad, offset, mass, v, coef, affine, out);
+                p2g_particle(p, K, K, d, PK, index, weight, grad, offset, mass, v, coef, affine, out, rows);
         }
-        add_blocks(N, rows, scratch, sums);
+        add_blocks(N, rows, rows, scratch, sums);
     }
     return 0;
 }
@@ -272,10 +280,10 @@ int bsms_umls_p2g(int64_t P, int64_t K, int64_t d, int64_t use_eta, double inv_h
                 const int64_t used = kernel_one(p, P, K, d, use_eta, inv_h, x, cell, status, bary, ring,
                                                 adjacency, nodes, index, weight, grad, r, s, negative + p);
                 if (!negative[p])
-                    p2g_particle(p, used, K, d, PK, index, weight, grad, 0, mass, v, coef, 0, out);
+                    p2g_particle(p, used, K, d, PK, index, weight, grad, 0, mass, v, coef, 0, out, rows);
             }
         }
-        add_blocks(N, rows, scratch, sums);
+        add_blocks(N, rows, rows, scratch, sums);
     }
     return 0;
 }
