@@ -34,7 +34,7 @@ def _beside_clamp(traj, tol):
 
 
 CONTAINED = {"disks": _inside_box, "glyphs": _inside_box, "balls": _inside_box, "wavy_channel": _inside_channel,
-             "cantilever": _beside_clamp, "press": _inside_box, "bracket": _inside_box}
+             "cantilever": _beside_clamp, "press": _inside_box, "bracket": _inside_box, "press3d": _inside_box}
 
 
 # the MPM families; the flow family's Eulerian data (no bodies, no energy diagnostics) is checked
@@ -176,7 +176,7 @@ def test_bad_ranges_name_the_key(ranges, message):
 
 
 def test_unknown_family_lists_the_choices():
-    with pytest.raises(ConfigError, match="unknown family 'disk'.*choose one of balls, bracket, cantilever, disks, glyphs, press, shock_channel, wavy_channel"):
+    with pytest.raises(ConfigError, match="unknown family 'disk'.*choose one of balls, bracket, cantilever, disks, glyphs, press, press3d, shock_channel, wavy_channel"):
         get_family("disk")
 
 

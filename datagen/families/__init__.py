@@ -11,12 +11,12 @@ or raises ConfigError where the family has no room for a foreign body.
 from __future__ import annotations
 
 from ..config import ConfigError
-from . import balls, bracket, cantilever, disks, glyphs, press, shock_channel, wavy_channel
+from . import balls, bracket, cantilever, disks, glyphs, press, press3d, shock_channel, wavy_channel
 
 __all__ = ["FAMILIES", "get_family", "place"]
 
 FAMILIES = {module.NAME: module
-            for module in (wavy_channel, disks, cantilever, glyphs, balls, press, bracket, shock_channel)}
+            for module in (wavy_channel, disks, cantilever, glyphs, balls, press, bracket, shock_channel, press3d)}
 
 
 def get_family(name):

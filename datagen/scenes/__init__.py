@@ -13,6 +13,7 @@ from . import (
     expansion,
     glyphs,
     press,
+    press3d,
     rotating_plate,
     rotating_square,
     slope,
@@ -27,7 +28,8 @@ __all__ = ["SCENES", "get_scene", "ConfigError", "Scene"]
 SCENES = {
     module.NAME: module
     for module in (vibrating_bar, colliding_disks, cantilever, rotating_square, disks, wavy_channel, glyphs,
-                   rotating_plate, stretched_bar, droplet, balls, bodies, slope, expansion, press)
+                   rotating_plate, stretched_bar, droplet, balls, bodies, slope, expansion, press,
+                   press3d)
 }
 
 

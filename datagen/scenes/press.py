@@ -150,14 +150,23 @@ def rest_pose(mesh: Mesh) -> Mesh:
     """The body as it is where it :func:`stands`; otherwise turned about its centre of mass so
     that the edge of its convex hull nearest the centre of mass faces down (the pose with the
     lowest centre of mass over a hull edge: the centre of mass always lies over that edge)."""
-    if stands(mesh):
+    turn = rest_turn(mesh)
+    if turn is None:
         return mesh
+    c = centre_of_mass(mesh)
+    rotation = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
+    return Mesh((mesh.nodes - c) @ rotation.T + c, mesh.cells)
+
+
+def rest_turn(mesh: Mesh) -> float | None:
+    """The angle (radians, counter-clockwise, about the centre of mass) :func:`rest_pose` turns a 2D
+    body by; None where it :func:`stands` as it is."""
+    if stands(mesh):
+        return None
     c = centre_of_mass(mesh)
     equations = ConvexHull(mesh.nodes).equations  # outward unit normal n and offset d: n.x + d <= 0 inside
     normal = equations[int(np.argmax(equations[:, :2] @ c + equations[:, 2])), :2]
-    turn = -math.pi / 2 - math.atan2(normal[1], normal[0])
-    rotation = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
-    return Mesh((mesh.nodes - c) @ rotation.T + c, mesh.cells)
+    return -math.pi / 2 - math.atan2(normal[1], normal[0])
 
 
 def _spacing(p: dict, area: float) -> float:
