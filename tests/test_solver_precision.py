@@ -103,3 +103,17 @@ def test_the_benchmark_prints_the_float32_line_from_its_float32_rows():
     assert _summary(rows, taichi, 3, "float32") == "throughput 3D float32: UMLS 2.50 M/s, taichi 4.00 M/s, ratio 0.625"
     assert _summary(rows, taichi[:1], 3, "float32") == "throughput 3D float32: UMLS 2.50 M/s, taichi n/a M/s, ratio n/a"
     assert _summary([], [], 3, "float32") == "throughput 3D float32: UMLS n/a M/s, taichi n/a M/s, ratio n/a"
+
+
+def test_the_precision_benchmark_varies_one_setting_per_run():
+    from solver_precision import variants
+
+    config = {"scene": "press3d", "params": {"mesh_size": 0.012}, "solver": {"cfl": 1.0, "precision": "float32"}}
+    runs = variants(config, 0.75)
+    assert list(runs) == ["float64", "float32", "dt/2", "refined"]
+    assert runs["float64"]["solver"] == {"cfl": 1.0, "precision": "float64"}
+    assert runs["float32"]["solver"] == {"cfl": 1.0, "precision": "float32"}
+    assert runs["dt/2"]["solver"] == {"cfl": 0.5, "precision": "float64"}
+    assert runs["refined"]["params"]["mesh_size"] == pytest.approx(0.009, rel=1e-15)
+    assert runs["refined"]["solver"] == {"cfl": 1.0, "precision": "float64"}
+    assert config["solver"]["precision"] == "float32" and config["params"]["mesh_size"] == 0.012  # left as given
