@@ -171,5 +171,5 @@ def test_bad_parameters_name_the_key():
         body_mesh(scene.params({"body": "block", "hole": 0.4}))
     with pytest.raises(ConfigError, match="params.size: the body spans"):
         scene.build(scene.params({**FAST, "size": 0.2}))
-    with pytest.raises(ConfigError, match="zero-shot placement is not supported for family press3d"):
+    with pytest.raises(ConfigError, match="family 'press3d' presses one body"):  # placement: test_press3d_infer.py
         family.place([], {}, None)

@@ -34,17 +34,26 @@ Every draw records its kind (``params.kind``). Extruded profiles stand on their 
 the body's extent in x and in z, and moves at ``ranges.speed`` along a line tilted up to
 ``ranges.angle`` degrees from the vertical towards a random azimuth for ``ranges.press_time`` s,
 then back.
+
+:func:`place` presses a given tetrahedral mesh (a user's part) as the family presses its bodies:
+mid-range size, material, gap and speed, a sphere of mid-range scale straight down over its middle;
+the indenter and its path chosen by its ``overrides`` (docs/press3d.md).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from ..config import ConfigError
+from ..mesh import Mesh
 from ..scenes import press3d as scene
 from ..shapes3d import section_outline
-from .base import check_ranges, choice, integer, log_uniform, uniform
+from ..simulation import resolve_config
+from .base import check_ranges, choice, integer, log_midpoint, log_uniform, midpoint, uniform
 from .glyphs import _alphabet
+from .placement import _dataset_config, _mesh_entry
 from .press import _final_chars, _fraction, random_polygon, random_stroke
 
 NAME = "press3d"
@@ -66,6 +75,11 @@ RANGES = {
     "indenter_offset": [-0.2, 0.2], "speed": [0.14, 0.18], "angle": [0.0, 15.0], "gap": [0.014, 0.018],
     "press_time": 0.15, "hold_time": 0.0,
 }
+# scene parameters that make the body: a placed mesh (:func:`place`) is the body, so none of them is overridden
+BODY_KEYS = ("kind", "body", "mesh", "char", "polygon", "holes", "depth", "block", "feature", "hole", "slot",
+             "feature_axis", "cylinder")
+# placement options that are no scene parameter: the indenter's size as the family's ranges give it
+PLACE_KEYS = ("indenter_scale", "indenter_aspect")
 
 
 def _kinds(r: dict, split: str) -> list[str]:
@@ -121,14 +135,20 @@ def _depth(body: dict) -> float:
     return body["block"][2] if body["body"] == "block" else body["cylinder"][0]
 
 
+def indenter_sizes(shape: str, half: float, aspect: float) -> list[float]:
+    """The scene's ``indenter_size`` of a ``shape`` of half width ``half``: a sphere's radius, a box
+    ``aspect`` x half as high as it is wide and deep, a bar ``aspect`` x half wide (along x)."""
+    sizes = {"sphere": [half], "box": [half, half * aspect, half], "bar": [half * aspect, half]}[shape]
+    return [round(s, 6) for s in sizes]
+
+
 def _indenter(r: dict, rng: np.random.Generator, size: float) -> dict:
     shape = choice(r, "indenters", rng)
     if shape not in scene.INDENTER_SIZES:
         raise ConfigError(f"ranges.indenters may hold {sorted(scene.INDENTER_SIZES)}, got {shape!r}")
     half = uniform(r, "indenter_scale", rng) * size
     aspect = uniform(r, "indenter_aspect", rng)
-    sizes = {"sphere": [half], "box": [half, half * aspect, half], "bar": [half * aspect, half]}[shape]
-    return {"indenter": shape, "indenter_size": [round(s, 6) for s in sizes]}
+    return {"indenter": shape, "indenter_size": indenter_sizes(shape, half, aspect)}
 
 
 def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
@@ -154,6 +174,63 @@ def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
 
 
 def place(meshes, dconfig, overrides: dict | None = None) -> dict:
-    """Not supported: the 3D press scene meshes its own bodies (no foreign mesh yet)."""
-    raise ConfigError(f"zero-shot placement is not supported for family {NAME} (its scene meshes its own bodies)")
+    """A ``press3d`` config pressing one tetrahedral mesh (a Mesh or a file path) as this family presses
+    its bodies: the dataset config's params (background, box, base, pose, damping, settling), the mesh as
+    the body (``body: mesh``) set on its most stable side and scaled to the mid-range size, subdivided
+    where it is coarser than bodies of the mid-range node count (``refine``), bonded at its base as the
+    config says, mid-range stiffness, Poisson ratio, density, speed and gap, and a sphere of mid-range
+    scale straight down over the body's middle. ``overrides`` replace any press3d scene parameter but
+    those that make the body (:data:`BODY_KEYS`): e.g. ``indenter`` (``sphere``, ``box``, ``bar``: sized
+    by the family's mid-range scale and aspect unless ``indenter_size`` is given), ``indenter_x``,
+    ``indenter_z``, ``speed``, ``angle``, ``azimuth``, ``press_time``, ``gap``, ``E``, ``size``,
+    ``refine``; and ``indenter_scale``, ``indenter_aspect`` (the family's ranges' meaning: half width /
+    size, and the box's height or the bar's width / its half width)."""
+    if isinstance(meshes, (str, Path, Mesh)) or not isinstance(meshes, (list, tuple)) or len(meshes) != 1:
+        raise ConfigError(f"family {NAME!r} presses one body: give meshes as a list of exactly one Mesh or file path")
+    overrides = _placement_overrides(overrides)
+    d = _dataset_config(dconfig, NAME)
+    entry, _ = _mesh_entry(meshes[0], 0, DIM, NAME)
+    r = check_ranges(NAME, RANGES, d["ranges"])
+    params = {key: value for key, value in d["params"].items() if key in scene.DEFAULTS and key not in BODY_KEYS}
+    params.update(
+        kind="mesh", body="mesh", mesh=entry, size=midpoint(r, "size"), nodes=round(midpoint(r, "nodes")),
+        E=log_midpoint(r, "E"), nu=midpoint(r, "nu"), density=midpoint(r, "density"), indenter_x=0.0,
+        indenter_z=0.0, speed=midpoint(r, "speed"), angle=0.0, azimuth=0.0, gap=midpoint(r, "gap"),
+        press_time=midpoint(r, "press_time"), hold_time=midpoint(r, "hold_time"), refine=True,
+    )
+    params.update({key: value for key, value in overrides.items() if key not in PLACE_KEYS})
+    params.update(_placed_indenter(r, overrides, params["size"]))
+    config = {"scene": SCENE, "params": params, "solver": d["solver"], "output": d["output"], "seed": d["seed"]}
+    resolve_config(config)  # every value checked now, not when the run starts
+    return config
 
+
+def _placement_overrides(overrides: dict | None) -> dict:
+    """``overrides`` checked: press3d scene parameters but :data:`BODY_KEYS`, and :data:`PLACE_KEYS`."""
+    overrides = dict(overrides or {})
+    known = sorted({*scene.DEFAULTS, *PLACE_KEYS} - set(BODY_KEYS))
+    for key in overrides:
+        if key not in known:
+            raise ConfigError(f"overrides.{key} is not a {NAME} scene parameter that can be overridden; "
+                              f"known: {', '.join(known)}")
+    if "indenter_size" in overrides and {"indenter_scale", "indenter_aspect"} & set(overrides):
+        raise ConfigError("overrides.indenter_size gives the indenter's half extents in metres; give it or "
+                          "indenter_scale and indenter_aspect (fractions), not both")
+    for key in ("indenter_scale", "indenter_aspect"):
+        value = overrides.get(key, 1.0)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
+            raise ConfigError(f"overrides.{key} must be a positive number, got {value!r}")
+    return overrides
+
+
+def _placed_indenter(r: dict, overrides: dict, size: float) -> dict:
+    """The placed indenter: ``indenter`` (sphere by default) sized by ``indenter_size`` where given, else
+    by the family's mid-range (or the given) ``indenter_scale`` x ``size`` and ``indenter_aspect``."""
+    shape = overrides.get("indenter", "sphere")
+    if shape not in scene.INDENTER_SIZES:
+        raise ConfigError(f"overrides.indenter must be one of {sorted(scene.INDENTER_SIZES)}, got {shape!r}")
+    if "indenter_size" in overrides:
+        return {"indenter": shape, "indenter_size": overrides["indenter_size"]}
+    half = float(overrides.get("indenter_scale", midpoint(r, "indenter_scale"))) * size
+    aspect = float(overrides.get("indenter_aspect", midpoint(r, "indenter_aspect")))
+    return {"indenter": shape, "indenter_size": indenter_sizes(shape, half, aspect)}

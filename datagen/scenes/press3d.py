@@ -10,10 +10,17 @@ The 3D counterpart of :mod:`datagen.scenes.press`; y is up, gravity along -y. Th
 - ``block``: a block of ``block`` x ``size`` (x, y, z lengths) with a round through hole of radius
   ``hole`` x ``size`` (``feature: hole``) or a round-ended through slot ``slot`` x ``size`` (width,
   length; ``feature: slot``) along axis ``feature_axis`` (0 x, 1 y, 2 z), or none (``feature: none``);
-- ``cylinder``: a round bar standing along y, ``cylinder`` x ``size`` (diameter, height).
+- ``cylinder``: a round bar standing along y, ``cylinder`` x ``size`` (diameter, height);
+- ``mesh``: any tetrahedral mesh (``mesh``: a file path or an inline ``{nodes, cells}``; a part for
+  zero-shot use, :func:`datagen.families.press3d.place`), kept as given where it stands with y up
+  and otherwise turned onto the face of its convex hull nearest its centre of mass (``pose:
+  stable``, :func:`datagen.scenes.solids.rest_pose`), scaled so that its largest extent is ``size``;
+  with ``refine`` subdivided (each tetrahedron into eight, its own nodes first: :mod:`datagen.refine`)
+  until its median edge is at most sqrt(2) times the spacing a body of its volume meshed to ``nodes``
+  nodes has, the resolution of the scene's own bodies.
 
-It is meshed to about ``nodes`` nodes (:func:`datagen.shapes3d.with_nodes`), set on the floor in
-the middle of the box ``[x0, y0, z0, x1, y1, z1]`` (``lift`` above it), and held there:
+The other bodies are meshed to about ``nodes`` nodes (:func:`datagen.shapes3d.with_nodes`). Each is
+set on the floor in the middle of the box ``[x0, y0, z0, x1, y1, z1]`` (``lift`` above it), and held there:
 ``base: bonded`` (the floor is sticky: the base is glued to it, so that what the indenter makes is
 deformation), ``resting`` (separating contact with ``friction``) or ``clamped`` (set against the
 box's sticky left wall, centred in height). The background mesh has spacing ``mesh_size``.
@@ -43,6 +50,8 @@ import numpy as np
 from ..config import ConfigError
 from ..mesh import Mesh
 from ..mpm.colliders import Collider, Path
+from ..refine import refine_to
+from ..shapes3d import NODES_PER_VOLUME
 from .base import Scene, box_bounds, box_domain, check_params, make_material, outline, vertex_volumes
 from .press import walls
 from .solids import BODIES, FEATURES, body_mesh
@@ -58,12 +67,12 @@ DEFAULTS = {
     "mesh_size": 0.012, "damping": 0.0, "settle_time": 0.0, "settle_damping": 400.0,
     "indenter": "sphere", "indenter_size": [0.025], "bar_overhang": 0.1, "indenter_x": 0.0, "indenter_z": 0.0,
     "indenter_friction": 0.3, "gap": 0.016, "speed": 0.16, "angle": 0.0, "azimuth": 0.0,
-    "press_time": 0.15, "hold_time": 0.0,
+    "press_time": 0.15, "hold_time": 0.0, "refine": False,
 }
 OUTPUT = {"frames": 30, "frame_interval": 0.01}
 SOLVER = {"transfer": "flip"}
 INDENTER_SIZES = {"sphere": 1, "box": 3, "bar": 2}
-_OPTIONAL = ("polygon", "holes")
+_OPTIONAL = ("polygon", "holes", "mesh")
 
 
 def params(given: dict) -> dict:
@@ -77,6 +86,9 @@ def params(given: dict) -> dict:
                               "indenter": set(INDENTER_SIZES), "pose": {"upright", "stable"},
                               "base": {"resting", "bonded", "clamped"}})
     p.update(optional)
+    if (p["body"] == "mesh") != (p["mesh"] is not None):
+        raise ConfigError("params.mesh gives the body with params.body: mesh, and only then; got params.body "
+                          f"{p['body']!r} and {'a' if p['mesh'] is not None else 'no'} params.mesh")
     sizes, want = p["indenter_size"], INDENTER_SIZES[p["indenter"]]
     if len(sizes) != want or not all(isinstance(s, (int, float)) and not isinstance(s, bool) and s > 0
                                      for s in sizes):
@@ -151,9 +163,22 @@ def placed(p: dict, body: Mesh) -> Mesh:
     return moved
 
 
+def refined(p: dict, body: Mesh) -> tuple[Mesh, np.ndarray | None]:
+    """A given mesh (``body: mesh``) with ``refine``: ``body`` subdivided (:func:`datagen.refine.refine_to`)
+    until its median edge is at most sqrt(2) times the spacing :func:`datagen.shapes3d.with_nodes` first
+    meshes a solid of its volume at for ``nodes`` nodes (the resolution of the scene's own bodies), its
+    nodes first; and the given mesh's cells where it was subdivided (else None)."""
+    if p["body"] != "mesh" or not p["refine"]:
+        return body, None
+    spacing = (NODES_PER_VOLUME * float(body.cell_measures.sum()) / p["nodes"]) ** (1 / 3)
+    fine, times = refine_to(body, spacing)
+    return fine, body.cells if times else None
+
+
 def build(p: dict) -> Scene:
     lower, upper = box_bounds(p["box"])
-    body = placed(p, body_mesh(p))
+    body, given_cells = refined(p, body_mesh(p))
+    body = placed(p, body)
     collider = indenter(p, body)
     domain = box_domain(lower, upper, p["mesh_size"])
     walls_nodes, walls_facets = outline(domain)
@@ -166,5 +191,5 @@ def build(p: dict) -> Scene:
         obstacle_nodes=np.concatenate([walls_nodes, surface_nodes]),
         obstacle_facets=np.concatenate([walls_facets, surface_facets + len(walls_nodes)]).astype(np.int64),
         colliders=[collider], collider_nodes=[len(surface_nodes)], damping=float(p["damping"]),
-        settle=(p["settle_time"], p["settle_damping"]) if p["settle_time"] > 0 else None,
+        settle=(p["settle_time"], p["settle_damping"]) if p["settle_time"] > 0 else None, given_cells=given_cells,
     )

@@ -1,21 +1,24 @@
 """The 3D press scene's bodies (:mod:`datagen.scenes.press3d`): extruded profiles, blocks with a hole
-or a slot, cylinders, meshed by :mod:`datagen.shapes3d` to about ``params.nodes`` nodes."""
+or a slot, cylinders, meshed by :mod:`datagen.shapes3d` to about ``params.nodes`` nodes; or a given
+tetrahedral mesh (``body: mesh``), set on its most stable side (:func:`rest_pose`) and scaled."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
 from .. import shapes, shapes3d
 from ..config import ConfigError
 from ..mesh import Mesh
 from .base import merge_bodies
-from .press import centre_of_mass, rest_turn
+from .bodies import place_body, read_body
+from .press import BASE_TOL, COM_MARGIN, MIN_BASE, centre_of_mass, rest_turn
 
-__all__ = ["BODIES", "FEATURES", "body_mesh", "profile", "profile_area"]
+__all__ = ["BODIES", "FEATURES", "body_mesh", "given_body", "profile", "profile_area", "rest_pose", "stands"]
 
-BODIES = ("extrusion", "block", "cylinder")
+BODIES = ("extrusion", "block", "cylinder", "mesh")
 FEATURES = ("hole", "slot", "none")
 _GLYPH_SPACING = 0.02  # of the em height: the outline's resolution for measuring and posing a letter
 
@@ -99,8 +102,10 @@ def _block(p: dict):
 
 
 def body_mesh(p: dict) -> Mesh:
-    """The body of the resolved parameters ``p``, meshed to about ``nodes`` nodes (anywhere: the
-    scene places it)."""
+    """The body of the resolved parameters ``p``, meshed to about ``nodes`` nodes, or the given
+    ``mesh`` posed and scaled (:func:`given_body`); anywhere: the scene places it."""
+    if p["body"] == "mesh":
+        return given_body(p)
     try:
         if p["body"] == "extrusion":
             depth = p["depth"] * p["size"]
@@ -119,3 +124,60 @@ def body_mesh(p: dict) -> Mesh:
         raise
     except ValueError as exc:
         raise ConfigError(f"params: the {p['body']} body cannot be meshed: {exc}") from None
+
+
+def given_body(p: dict) -> Mesh:
+    """The tetrahedral mesh ``mesh`` (a file path or an inline ``{nodes, cells}``) set on its most
+    stable side where ``pose`` is ``stable`` (:func:`rest_pose`), then scaled so that its largest
+    extent is ``size`` (about the origin; the scene places it)."""
+    try:
+        mesh = read_body(p["mesh"], 0)
+    except ConfigError as exc:  # read_body names the bodies scene's key
+        raise ConfigError(str(exc).replace("params.meshes[0]", "params.mesh")) from None
+    if mesh.dim != 3:
+        raise ConfigError(f"params.mesh holds a {mesh.dim}D mesh; the press3d scene needs a tetrahedral (3D) mesh")
+    return place_body(rest_pose(mesh) if p["pose"] == "stable" else mesh, np.zeros(3), p["size"])
+
+
+def stands(mesh: Mesh) -> bool:
+    """Whether a solid stands as it is on a floor below it (y up), as the 2D press's
+    :func:`datagen.scenes.press.stands` says of a profile: its base (nodes within BASE_TOL x its size
+    of its lowest point) is at least MIN_BASE x its size wide in every direction on the floor, and
+    its centre of mass lies over the base at least COM_MARGIN x that width inside its outline."""
+    size = float(np.ptp(mesh.nodes, axis=0).max())
+    base = mesh.nodes[mesh.nodes[:, 1] <= mesh.nodes[:, 1].min() + BASE_TOL * size][:, [0, 2]]
+    try:
+        hull = ConvexHull(base)
+    except (QhullError, ValueError):  # fewer than three points, or all on a line: no footing
+        return False
+    normals, offsets = hull.equations[:, :2], hull.equations[:, 2]  # n.x + d <= 0 inside
+    # the base's width: across it at its narrowest, from each edge of its outline to its farthest point
+    width = float(np.min(np.max(-(base @ normals.T + offsets), axis=0)))
+    inside = -(normals @ centre_of_mass(mesh)[[0, 2]] + offsets)
+    return width >= MIN_BASE * size and float(inside.min()) >= COM_MARGIN * width
+
+
+def rest_pose(mesh: Mesh) -> Mesh:
+    """A solid as it is where it :func:`stands`; otherwise turned about its centre of mass, by the
+    smallest rotation that does it, so that the face of its convex hull nearest the centre of mass
+    faces down (the 3D counterpart of :func:`datagen.scenes.press.rest_pose`: the centre of mass
+    lies over that face)."""
+    if stands(mesh):
+        return mesh
+    c = centre_of_mass(mesh)
+    equations = ConvexHull(mesh.nodes).equations
+    normal = equations[int(np.argmax(equations[:, :3] @ c + equations[:, 3])), :3]
+    rotation = _turning(normal / np.linalg.norm(normal), np.array([0.0, -1.0, 0.0]))
+    return Mesh((mesh.nodes - c) @ rotation.T + c, mesh.cells)
+
+
+def _turning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The proper rotation (3, 3) by the smallest angle that turns the unit vector ``a`` onto ``b``
+    (Rodrigues; half a turn about an axis normal to both where they are opposite)."""
+    axis, cosine = np.cross(a, b), float(a @ b)
+    if cosine < -1.0 + 1e-12:
+        other = np.eye(3)[int(np.argmin(np.abs(a)))]
+        axis = np.cross(a, other) / np.linalg.norm(np.cross(a, other))
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + k + k @ k / (1.0 + cosine)
