@@ -115,14 +115,16 @@ def _extent(nodes: np.ndarray) -> float:
     return float(np.ptp(nodes, axis=0).max()) / 1.6
 
 
-def frame(nodes: np.ndarray, cells: np.ndarray, seed: int, cache: Path):
-    """One LevelGraph on the mesh (2D or 3D): smooth displacement, velocity and target fields (seeded)."""
+def frame(nodes: np.ndarray, cells: np.ndarray, seed: int, cache: Path, max_coarse_degree: int | None = None):
+    """One LevelGraph on the mesh (2D or 3D): smooth displacement, velocity and target fields (seeded);
+    max_coarse_degree: the hierarchy's coarse-degree cap (``bistride_levels``; None: none)."""
     from bsms.graph import bistride_levels
     from bsms.level_graph import frame_graph, hierarchy_levels
     from datagen.mesh import Mesh
 
     mesh = Mesh(nodes, cells)
-    hierarchy = bistride_levels(mesh, levels="auto", min_nodes=MIN_NODES, cache_dir=cache)
+    hierarchy = bistride_levels(mesh, levels="auto", min_nodes=MIN_NODES, max_coarse_degree=max_coarse_degree,
+                                cache_dir=cache)
     rng = np.random.default_rng(seed)
     dim = nodes.shape[1]
     k = rng.normal(size=(3, dim, dim)) * 4 / _extent(nodes)

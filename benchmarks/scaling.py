@@ -8,7 +8,8 @@ displaced by smooth seeded fields (the same numbers for every model; ``model_cos
 models are ``model_costs.py``'s: MLPs of ``--hidden-layers`` (2) hidden layers of ``--latent`` (128) units
 (``--latent 64 --hidden-layers 1 --no-layer-norm``: the lean blocks of the published 2D models),
 MeshGraphNets 15 passes, MS-GNN-Grid the thesis' [4, 2, 2, 4] passes, BSMS-GNN one pass per
-level of a bi-stride hierarchy pooled until a level has fewer than 32 nodes (MinAve seeds).
+level of a bi-stride hierarchy pooled until a level has fewer than 32 nodes (MinAve seeds; with
+``--max-coarse-degree k``, at most k edges per node on its coarse levels: ``bsms.graph.capping``).
 Every (model, size) runs in fresh processes, one for time and one for memory, measured as
 ``model_costs.py`` measures them (``--warmup`` then ``--steps`` training steps, then the same
 graphs as inference passes; the median step; memory: the resident-set high-water mark over the
@@ -36,7 +37,7 @@ log-log figure ``docs/images/scaling.png`` and the table ``docs/scaling_table.md
 (slopes of the inference step; the solver's of its frame; N the largest mesh BSMS-GNN ran).
 
     python benchmarks/scaling.py [--sizes 5000 15000 45000 150000 500000] [--threads 2] [--docs] [--resume]
-        [--latent 128] [--hidden-layers 2] [--no-layer-norm]
+        [--latent 128] [--hidden-layers 2] [--no-layer-norm] [--max-coarse-degree K]
 """
 
 from __future__ import annotations
@@ -95,7 +96,8 @@ def model_worker(spec: dict) -> dict:
     folder = Path(spec["data"])
     nodes, cells = cached_plate(folder, spec["size"])
     count = spec["warmup"] + (1 if spec["phase"] == "memory" else spec["steps"])  # memory: one step peaks
-    graphs = [frame(nodes, cells, seed=i, cache=folder / "hierarchies")[0] for i in range(count)]
+    cap = spec.get("max_coarse_degree")
+    graphs = [frame(nodes, cells, seed=i, cache=folder / "hierarchies", max_coarse_degree=cap)[0] for i in range(count)]
     return measure_model(spec, graphs, 3)  # under --memory-cap once the model is built
 
 
@@ -252,6 +254,9 @@ def parse(argv):
     parser.add_argument("--no-layer-norm", action="store_true",
                         help="BSMS-GNN without LayerNorm (with --latent 64 --hidden-layers 1: the lean blocks of "
                              "the published 2D models)")
+    parser.add_argument("--max-coarse-degree", type=int, default=None,
+                        help="BSMS-GNN's hierarchy: at most this many edges per node on the coarse levels "
+                             "(graph.max_coarse_degree; default: no cap)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads per process (default 2)")
     parser.add_argument("--max-step", type=float, default=120.0,
                         help="a model whose training step would take longer (s) is timed in inference only "
@@ -272,6 +277,8 @@ def parse(argv):
             parser.error(f"--{key} must be >= 1")
     if args.warmup < 0 or min(args.sizes) < 500:
         parser.error("--warmup must be >= 0 and --sizes >= 500 nodes")
+    if args.max_coarse_degree is not None and args.max_coarse_degree < 1:
+        parser.error("--max-coarse-degree must be >= 1")
     args.sizes = sorted(set(args.sizes))
     return args
 
@@ -286,11 +293,15 @@ def main(argv=None) -> int:
     from datagen.compiled import cpu_summary
 
     print(f"scaling: {args.warmup} warm-up + {args.steps} timed steps, {args.threads} threads, latent {args.latent}, "
-          f"{args.hidden_layers} hidden layers, LayerNorm {not args.no_layer_norm}; {cpu_summary()}", flush=True)
+          f"{args.hidden_layers} hidden layers, LayerNorm {not args.no_layer_norm}, coarse degree cap "
+          f"{args.max_coarse_degree}; {cpu_summary()}", flush=True)
     spec = {"data": str(args.data), "steps": args.steps, "warmup": args.warmup, "threads": args.threads,
             "device": "cpu", "latent": args.latent, "memory_cap": args.memory_cap, "clock": "wall",
             "hidden_layers": args.hidden_layers, "layer_norm": not args.no_layer_norm}
-    settings = {k: spec[k] for k in ("steps", "warmup", "threads", "latent", "hidden_layers", "layer_norm")}
+    if args.max_coarse_degree is not None:  # absent when uncapped: --resume keeps files written before the option
+        spec["max_coarse_degree"] = args.max_coarse_degree
+    settings = {k: spec[k] for k in ("steps", "warmup", "threads", "latent", "hidden_layers", "layer_norm",
+                                     "max_coarse_degree") if k in spec}
     done = {}
     if args.resume and args.out.is_file():  # sizes measured before with the same settings
         saved = json.loads(args.out.read_text())

@@ -154,7 +154,8 @@ class Scenario:
             rest, edges, node_type, body_id, geometry = _with_obstacles(rest, edges, node_type, body_id, obstacle_nodes,
                                                                         obstacle_facets, spacing)
         hierarchy = bistride_levels(edges, rest, levels=options.levels, seeding=options.seeding,
-                                    self_loops=options.self_loops, cache_dir=cache_dir)
+                                    self_loops=options.self_loops, max_coarse_degree=options.max_coarse_degree,
+                                    cache_dir=cache_dir)
         constants = np.array([scene_constant(params or {}, name, source) for name in options.constants])
         radius = options.contact_radius * edge_length if options.contact_distance is None else \
             options.contact_distance

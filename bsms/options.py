@@ -21,6 +21,10 @@ class GraphOptions:
     levels: bi-stride levels, the mesh included (every graph of a run has exactly this many,
         so that batches line up; meshgraphnets uses level 0 only).
     seeding, self_loops: options of :func:`bsms.graph.bistride_levels`.
+    max_coarse_degree: null (the thesis' levels: every pair of kept nodes within two hops is
+        joined), or at most this many edges per node on the coarse levels, kept from the mesh's
+        topology (:mod:`bsms.graph.capping`): for tetrahedral meshes, whose coarse levels
+        otherwise densify (docs/scaling.md).
     obstacles: add the wall/container geometry of the trajectory as OBSTACLE nodes (with the
         edges of its facets), so that the model can see the walls it bounces off.
     contact: add world-space contact edges per frame, carried to every level.
@@ -102,6 +106,7 @@ class GraphOptions:
     levels: int = 4
     seeding: Literal["min_ave", "close_center", "random"] = "min_ave"
     self_loops: bool = True
+    max_coarse_degree: int | None = None
     obstacles: bool = True
     contact: bool = True
     contact_radius: float = 3.0
@@ -129,6 +134,9 @@ class GraphOptions:
         if not 1 <= self.levels <= 16:
             raise ConfigError(f"config key '{prefix}.levels' must be from 1 to 16 (the mesh included), "
                               f"got {self.levels}")
+        if self.max_coarse_degree is not None and self.max_coarse_degree < 1:
+            raise ConfigError(f"config key '{prefix}.max_coarse_degree' must be an integer >= 1 (coarse edges per "
+                              f"node) or null (no cap), got {self.max_coarse_degree}")
         if self.obstacle_spacing < 0:
             raise ConfigError(f"config key '{prefix}.obstacle_spacing' must be >= 0 (0 keeps the stored "
                               f"geometry), got {self.obstacle_spacing}")

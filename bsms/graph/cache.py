@@ -2,9 +2,10 @@
 
 The key is a sha256 of everything the hierarchy depends on: the graph (canonical CSR of the
 level-0 adjacency, so a mesh and its edge list give the same key), the level rule, the
-seeding and its random seed, the transition option and, for ``close_center`` only, the node
-positions. Files are written to a temporary name and renamed (``os.replace``), so readers
-never see half a file, and read with ``allow_pickle=False``.
+seeding and its random seed, the transition option, the coarse-degree cap where one is set (an
+uncapped hierarchy's key is the one it had before the cap existed) and, for ``close_center``
+only, the node positions. Files are written to a temporary name and renamed (``os.replace``),
+so readers never see half a file, and read with ``allow_pickle=False``.
 """
 
 from __future__ import annotations

@@ -3,13 +3,15 @@
 :func:`bistride_levels` builds, once per mesh and from its topology alone, the levels of a
 BSMS-GNN: level 0 is the mesh graph; level l+1 keeps every other BFS frontier of level l
 from a seed per connected component (:mod:`bsms.graph.pooling`) and joins kept nodes within
-two hops. Each level also stores the down/up transition operators from/to the level above
-it (:mod:`bsms.graph.transitions`). Everything is deterministic for the same inputs, and a
-hierarchy can be cached on disk (:mod:`bsms.graph.cache`).
+two hops (all of them, or at most ``max_coarse_degree`` per node: :mod:`bsms.graph.capping`,
+for tetrahedral meshes whose coarse levels densify). Each level also stores the down/up
+transition operators from/to the level above it (:mod:`bsms.graph.transitions`). Everything is
+deterministic for the same inputs, and a hierarchy can be cached on disk (:mod:`bsms.graph.cache`).
 
 Costs: one BFS per level (csgraph), the pooled adjacency R R^T with R = (A+I)[kept, :] for the
 coarse edges (compiled bitset rows, :mod:`bsms.graph.native`, or scipy's sparse product), and a
-few sparse products for the transitions; MinAve seeding adds the search described in
+few sparse products for the transitions (a capped level: the integer product, a sort of its pairs
+and a few vectorised greedy rounds); MinAve seeding adds the search described in
 :mod:`bsms.graph.seeding`. Nothing is dense in the number of nodes.
 """
 
@@ -24,8 +26,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse import csgraph
 
-from bsms.graph.bfs import adjacency_from_edges, cell_adjacency
+from bsms.graph.bfs import adjacency_from_edges, bfs_depths, cell_adjacency
 from bsms.graph.cache import FORMAT_VERSION, cache_path, hierarchy_key, read_npz, write_npz_atomic
+from bsms.graph.capping import capped_coarse_adjacency
 from bsms.graph.pooling import bistride_pool, closed_rows, coarse_adjacency
 from bsms.graph.seeding import SEEDINGS, component_seeds
 from bsms.graph.transitions import Transition, transition_operators
@@ -98,7 +101,7 @@ class Hierarchy:
     levels: the levels, ``levels[0]`` being the input graph.
     component_labels: (N,) int64 connected component of each level-0 node; component c
         keeps at least one node on every level.
-    seeding, self_loops: how it was built. key: the cache key (sha256 hex).
+    seeding, self_loops, max_coarse_degree: how it was built. key: the cache key (sha256 hex).
     """
 
     levels: tuple[BistrideLevel, ...]
@@ -106,6 +109,7 @@ class Hierarchy:
     seeding: str
     self_loops: bool
     key: str
+    max_coarse_degree: int | None = None
 
     @property
     def n_levels(self) -> int:
@@ -147,6 +151,8 @@ class Hierarchy:
         """Flat name -> array mapping (npz-ready, no objects)."""
         meta = {"format": FORMAT_VERSION, "n_levels": self.n_levels, "seeding": self.seeding,
                 "self_loops": self.self_loops, "key": self.key}
+        if self.max_coarse_degree is not None:
+            meta["max_coarse_degree"] = self.max_coarse_degree
         arrays = {"meta": np.array(json.dumps(meta)), "component_labels": self.component_labels}
         for l, level in enumerate(self.levels):
             arrays.update({f"l{l}_{name}": getattr(level, name) for name in _LEVEL_ARRAYS})
@@ -171,7 +177,7 @@ class Hierarchy:
                     fields[kind] = Transition(*parts, shape)
             levels.append(BistrideLevel(**fields))
         return cls(tuple(levels), arrays["component_labels"], meta["seeding"], meta["self_loops"],
-                   meta["key"])
+                   meta["key"], meta.get("max_coarse_degree"))
 
     def save(self, path) -> None:
         """Write as ``.npz`` atomically (temporary file, then rename)."""
@@ -222,7 +228,7 @@ def _is_count(value) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
-def _check_options(levels, seeding, seed, min_nodes) -> None:
+def _check_options(levels, seeding, seed, min_nodes, max_coarse_degree) -> None:
     if levels != "auto" and not (_is_count(levels) and 1 <= levels <= _MAX_LEVELS):
         raise ValueError(f"levels must be 'auto' or an integer from 1 to {_MAX_LEVELS} "
                          f"(the number of levels, the mesh included); got {levels!r}")
@@ -232,6 +238,9 @@ def _check_options(levels, seeding, seed, min_nodes) -> None:
         raise ValueError(f"min_nodes must be an integer >= 1; got {min_nodes!r}")
     if not (_is_count(seed) and seed >= 0):
         raise ValueError(f"seed must be an integer >= 0; got {seed!r}")
+    if max_coarse_degree is not None and not (_is_count(max_coarse_degree) and max_coarse_degree >= 1):
+        raise ValueError("max_coarse_degree must be None (no cap) or an integer >= 1 (coarse edges per node); "
+                         f"got {max_coarse_degree!r}")
 
 
 # ---------------------------------------------------------------------- building
@@ -242,8 +251,19 @@ def _wants_another_level(levels, min_nodes: int, n_levels: int, n_nodes: int, n_
     return n_nodes >= min_nodes and n_nodes > n_components and n_levels < _MAX_LEVELS
 
 
+def _coarse_level(adjacency: sp.csr_matrix, closed: sp.csr_matrix, seeds: np.ndarray, kept: np.ndarray,
+                  max_coarse_degree: int | None) -> sp.csr_matrix:
+    """The adjacency of the level of nodes ``kept``: all kept pairs within two hops (eq. 4.1), or
+    under a degree cap (:mod:`bsms.graph.capping`)."""
+    if max_coarse_degree is None:
+        return coarse_adjacency(closed)
+    depth = bfs_depths(adjacency, seeds)[kept]
+    return capped_coarse_adjacency(closed, depth, max_coarse_degree)[0]
+
+
 def build_hierarchy(adjacency: sp.csr_matrix, positions: np.ndarray, levels, seeding: str, seed: int,
-                    min_nodes: int, self_loops: bool, key: str = "") -> Hierarchy:
+                    min_nodes: int, self_loops: bool, key: str = "",
+                    max_coarse_degree: int | None = None) -> Hierarchy:
     """The levels of ``adjacency`` ((N, N) symmetric 0/1 CSR, no diagonal), no input checks.
 
     positions: (N, d), used by ``close_center`` only. See :func:`bistride_levels`.
@@ -261,15 +281,15 @@ def build_hierarchy(adjacency: sp.csr_matrix, positions: np.ndarray, levels, see
         closed = closed_rows(adjacency, kept)
         degree = np.diff(adjacency.indptr)
         down, up, weights = transition_operators(closed, kept, degree, weights, self_loops)
-        adjacency = coarse_adjacency(closed)
+        adjacency = _coarse_level(adjacency, closed, seeds, kept, max_coarse_degree)
         built.append(BistrideLevel(kept, edge_index_of(adjacency), weights, seeds, down, up))
         labels, positions = labels[kept], positions[kept]
-    return Hierarchy(tuple(built), component_labels, seeding, self_loops, key)
+    return Hierarchy(tuple(built), component_labels, seeding, self_loops, key, max_coarse_degree)
 
 
 def bistride_levels(mesh_or_edges, positions=None, levels="auto", seeding: str = "min_ave", seed: int = 0,
                     *, min_nodes: int = DEFAULT_MIN_NODES, self_loops: bool = True,
-                    cache_dir=None) -> Hierarchy:
+                    max_coarse_degree: int | None = None, cache_dir=None) -> Hierarchy:
     """Bi-stride levels of a mesh graph, with their down/up transitions.
 
     mesh_or_edges: a :class:`datagen.mesh.Mesh`, or (E, 2) int node pairs (any order,
@@ -285,18 +305,25 @@ def bistride_levels(mesh_or_edges, positions=None, levels="auto", seeding: str =
         components (:mod:`bsms.graph.seeding`); the result is deterministic for a given seed.
     self_loops: whether a kept node's own value enters its down/up averages
         (:mod:`bsms.graph.transitions` gives the measurement behind the default).
+    max_coarse_degree: None (the thesis' levels: every kept pair within two hops is joined), or
+        at most this many edges per node on the coarse levels, chosen from the topology
+        (:mod:`bsms.graph.capping`; for tetrahedral meshes, whose coarse levels densify otherwise).
     cache_dir: a folder to load the hierarchy from, or store it in, keyed by a hash of
-        (topology, levels, min_nodes, seeding, seed, self_loops[, positions for close_center]).
+        (topology, levels, min_nodes, seeding, seed, self_loops[, max_coarse_degree when set]
+        [, positions for close_center]).
 
     Raises ValueError naming the argument for a bad ``levels``, ``seeding``, ``seed``,
-    ``min_nodes``, positions of the wrong shape or non-finite, or malformed edges.
+    ``min_nodes``, ``max_coarse_degree``, positions of the wrong shape or non-finite, or
+    malformed edges.
     """
-    _check_options(levels, seeding, seed, min_nodes)
+    _check_options(levels, seeding, seed, min_nodes, max_coarse_degree)
     levels = levels if levels == "auto" else int(levels)
     adjacency, positions = _graph_of(mesh_or_edges, positions)
     adjacency.sort_indices()
     options = {"levels": levels, "min_nodes": int(min_nodes) if levels == "auto" else None,
                "seeding": seeding, "seed": int(seed), "self_loops": bool(self_loops)}
+    if max_coarse_degree is not None:  # uncapped hierarchies keep the keys they always had
+        options["max_coarse_degree"] = int(max_coarse_degree)
     key = hierarchy_key(adjacency, positions if seeding == "close_center" else None, options)
     path = cache_path(output_folder(cache_dir, "cache_dir"), key) if cache_dir is not None else None
     if path is not None and path.is_file():
@@ -307,7 +334,7 @@ def bistride_levels(mesh_or_edges, positions=None, levels="auto", seeding: str =
         except (OSError, ValueError, KeyError) as exc:
             warnings.warn(f"ignoring unreadable hierarchy cache {path} ({exc}); rebuilding it", stacklevel=2)
     hierarchy = build_hierarchy(adjacency, positions, levels, seeding, int(seed), int(min_nodes),
-                                bool(self_loops), key)
+                                bool(self_loops), key, None if max_coarse_degree is None else int(max_coarse_degree))
     if path is not None:
         hierarchy.save(path)
     return hierarchy
