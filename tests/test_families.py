@@ -33,8 +33,15 @@ def _beside_clamp(traj, tol):
     return (traj.positions[..., 0] >= -tol).all() and (traj.positions[..., 1] >= -q["drop"] - tol).all()
 
 
+def _around_pin(traj, tol):
+    """A plate on a pin at the origin: no node goes further from the pin than the farthest one starts."""
+    reach = np.linalg.norm(traj.positions, axis=-1)
+    return (reach <= reach[0].max() + tol).all()
+
+
 CONTAINED = {"disks": _inside_box, "glyphs": _inside_box, "balls": _inside_box, "wavy_channel": _inside_channel,
-             "cantilever": _beside_clamp, "press": _inside_box, "bracket": _inside_box, "press3d": _inside_box}
+             "cantilever": _beside_clamp, "press": _inside_box, "bracket": _inside_box, "press3d": _inside_box,
+             "pendulum": _around_pin}
 
 
 # the MPM families; the flow family's Eulerian data (no bodies, no energy diagnostics) is checked
@@ -176,7 +183,8 @@ def test_bad_ranges_name_the_key(ranges, message):
 
 
 def test_unknown_family_lists_the_choices():
-    with pytest.raises(ConfigError, match="unknown family 'disk'.*choose one of balls, bracket, cantilever, disks, glyphs, press, press3d, shock_channel, wavy_channel"):
+    with pytest.raises(ConfigError, match="unknown family 'disk'.*choose one of balls, bracket, cantilever, disks, "
+                       "glyphs, pendulum, press, press3d, shock_channel, wavy_channel"):
         get_family("disk")
 
 

@@ -11,12 +11,13 @@ or raises ConfigError where the family has no room for a foreign body.
 from __future__ import annotations
 
 from ..config import ConfigError
-from . import balls, bracket, cantilever, disks, glyphs, press, press3d, shock_channel, wavy_channel
+from . import balls, bracket, cantilever, disks, glyphs, pendulum, press, press3d, shock_channel, wavy_channel
 
 __all__ = ["FAMILIES", "get_family", "place"]
 
 FAMILIES = {module.NAME: module
-            for module in (wavy_channel, disks, cantilever, glyphs, balls, press, bracket, shock_channel, press3d)}
+            for module in (wavy_channel, disks, cantilever, glyphs, balls, press, bracket, shock_channel, press3d,
+                           pendulum)}
 
 
 def get_family(name):

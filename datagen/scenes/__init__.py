@@ -12,6 +12,7 @@ from . import (
     droplet,
     expansion,
     glyphs,
+    pendulum,
     press,
     press3d,
     rotating_plate,
@@ -29,7 +30,7 @@ SCENES = {
     module.NAME: module
     for module in (vibrating_bar, colliding_disks, cantilever, rotating_square, disks, wavy_channel, glyphs,
                    rotating_plate, stretched_bar, droplet, balls, bodies, slope, expansion, press,
-                   press3d)
+                   press3d, pendulum)
 }
 
 
