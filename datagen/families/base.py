@@ -98,3 +98,22 @@ def place_disjoint(radii: list[float], lower, upper, gap: float, rng: np.random.
             return np.array(centers)
     raise ConfigError(f"ranges.{key}: could not place {len(radii)} bodies of radii {np.round(radii, 3).tolist()} "
                       f"apart inside the box; use a larger box or smaller ranges")
+
+
+def split_kinds(r: dict, split: str, known, shared_ok: str | None = None) -> list[str]:
+    """The kinds ``split`` draws from (``ranges.{split}_kinds``), checked: ``train_kinds``,
+    ``test_kinds`` and ``final_kinds`` each a non-empty list of ``known`` kinds, and no kind in two of
+    them but ``shared_ok`` (e.g. ``letter``, whose characters differ between splits)."""
+    lists = {}
+    for key in ("train_kinds", "test_kinds", "final_kinds"):
+        kinds = r[key]
+        if not isinstance(kinds, (list, tuple)) or not kinds or any(k not in known for k in kinds):
+            raise ConfigError(f"ranges.{key} must be a non-empty list of {', '.join(known)}, got {kinds!r}")
+        lists[key] = set(kinds)
+    for a, b in (("train_kinds", "test_kinds"), ("train_kinds", "final_kinds"), ("test_kinds", "final_kinds")):
+        shared = lists[a] & lists[b] - {shared_ok}
+        if shared:
+            excepted = f" ({shared_ok} excepted: each split draws its own)" if shared_ok else ""
+            raise ConfigError(f"ranges.{a} and ranges.{b} share {sorted(shared)}; a kind belongs to one split"
+                              + excepted)
+    return list(r[f"{split}_kinds"])

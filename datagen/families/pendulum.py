@@ -37,7 +37,7 @@ import numpy as np
 from ..config import ConfigError
 from ..scenes.pendulum import clearance
 from ..shapes3d import section_outline
-from .base import check_ranges, integer, log_uniform, uniform
+from .base import check_ranges, integer, log_uniform, split_kinds, uniform
 from .press import _fraction, random_polygon, random_stroke
 
 NAME = "pendulum"
@@ -58,18 +58,8 @@ GRID = 41  # candidate pivots per axis over the outline's bounding box
 
 
 def _kinds(r: dict, split: str) -> list[str]:
-    """The kinds ``split`` draws from, checked: known, and each in one split's list only."""
-    lists = {}
-    for key in ("train_kinds", "test_kinds", "final_kinds"):
-        kinds = r[key]
-        if not isinstance(kinds, (list, tuple)) or not kinds or any(k not in KINDS for k in kinds):
-            raise ConfigError(f"ranges.{key} must be a non-empty list of {', '.join(KINDS)}, got {kinds!r}")
-        lists[key] = set(kinds)
-    for a, b in (("train_kinds", "test_kinds"), ("train_kinds", "final_kinds"), ("test_kinds", "final_kinds")):
-        shared = lists[a] & lists[b]
-        if shared:
-            raise ConfigError(f"ranges.{a} and ranges.{b} share {sorted(shared)}; a kind belongs to one split")
-    return list(r[f"{split}_kinds"])
+    """The kinds ``split`` draws from, checked (:func:`~.base.split_kinds`)."""
+    return split_kinds(r, split, KINDS)
 
 
 def _ring(points) -> np.ndarray:

@@ -51,7 +51,7 @@ from ..mesh import Mesh
 from ..scenes import press3d as scene
 from ..shapes3d import section_outline
 from ..simulation import resolve_config
-from .base import check_ranges, choice, integer, log_midpoint, log_uniform, midpoint, uniform
+from .base import check_ranges, choice, integer, log_midpoint, log_uniform, midpoint, split_kinds, uniform
 from .glyphs import _alphabet
 from .placement import _dataset_config, _mesh_entry
 from .press import _final_chars, _fraction, random_polygon, random_stroke
@@ -83,21 +83,11 @@ PLACE_KEYS = ("indenter_scale", "indenter_aspect")
 
 
 def _kinds(r: dict, split: str) -> list[str]:
-    """The kinds ``split`` draws from, checked: known, and none of a split's but ``letter`` in another's."""
-    lists = {}
-    for key in ("train_kinds", "test_kinds", "final_kinds"):
-        kinds = r[key]
-        if not isinstance(kinds, (list, tuple)) or not kinds or any(k not in KINDS for k in kinds):
-            raise ConfigError(f"ranges.{key} must be a non-empty list of {', '.join(KINDS)}, got {kinds!r}")
-        lists[key] = set(kinds)
-    for a, b in (("train_kinds", "test_kinds"), ("train_kinds", "final_kinds"), ("test_kinds", "final_kinds")):
-        shared = lists[a] & lists[b] - {"letter"}
-        if shared:
-            raise ConfigError(f"ranges.{a} and ranges.{b} share {sorted(shared)}; a kind belongs to one split "
-                              "(letters excepted: their characters differ between splits)")
-    if "letter" in lists["final_kinds"]:
+    """The kinds ``split`` draws from, checked (:func:`~.base.split_kinds`; letters in several splits)."""
+    kinds = split_kinds(r, split, KINDS, shared_ok="letter")
+    if "letter" in r["final_kinds"]:
         raise ConfigError("ranges.final_kinds may not hold 'letter' (the final split's characters are 'digit')")
-    return list(r[f"{split}_kinds"])
+    return kinds
 
 
 def _body(kind: str, r: dict, rng: np.random.Generator, chars: str) -> dict:

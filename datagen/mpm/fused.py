@@ -103,7 +103,8 @@ class _Reference(ctypes.Structure):
                 ("tangents", ptr), ("lower", ptr), ("upper", ptr), ("gaps", ptr)]
 
 
-PRECISIONS = {"float64": ((), torch.float64), "float32": (("-DBSMS_REAL=float",), torch.float32)}
+# each Model.precision: its build's preprocessor definitions and the dtype of the slots it reads
+_BUILDS = {"float64": ((), torch.float64), "float32": (("-DBSMS_REAL=float",), torch.float32)}
 
 
 @functools.cache
@@ -111,7 +112,7 @@ def library(precision: str = "float64") -> ctypes.CDLL | None:
     """The compiled substeps (built on first use), or None where they cannot be. precision: the
     kernel's and the transfers' arithmetic (:attr:`Model.precision`), a build of its own."""
     lib = compiled.build(SOURCE, "compiled substeps", "each substep runs through the Python step, several times "
-                         "slower", depends=DEPENDS, defines=PRECISIONS[precision][0])
+                         "slower", depends=DEPENDS, defines=_BUILDS[precision][0])
     if lib is None:
         return None
     lib.bsms_substeps.argtypes = [ctypes.POINTER(_Plan), i64, f64, ptr, ptr, ptr, ptr, ctypes.POINTER(f64),
@@ -339,7 +340,7 @@ def _reference_call(model: Model, state: State, dt: float, steps: int) -> tuple[
         keep.append(t)
         return t.data_ptr()
 
-    k, real = ref.kernel, PRECISIONS[model.precision][1]
+    k, real = ref.kernel, _BUILDS[model.precision][1]
     R = _Reference(address(k.index), address(k.weight, real), address(k.grad_axes, real),
                    address(ref.active, torch.uint8), address(model.node_positions), ref.wall_gap, model.epsilon,
                    model.fraction,
