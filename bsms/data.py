@@ -11,6 +11,7 @@ per level, of the body nodes and the obstacle nodes within reach of them
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +28,7 @@ from bsms.level_graph import FrameArrays, LevelGraph, level_graph
 from bsms.options import GraphOptions, NoiseOptions, saved_graph_options
 from bsms.physics.elastic import HOLD, ElasticResponse
 from bsms.physics.penetration import Clearance, Penetration
+from bsms.stride import strided
 from datagen.dataset import DatasetError
 from datagen.trajectory import NodeType
 
@@ -321,10 +323,14 @@ class FrameDataset(NumberedSamples):
     a sample does not depend on which process or batch draws it. ``mirror``: each file also
     enters reflected by x -> -x (:mod:`bsms.augment`), after it. ``rotate`` (degrees): a sample
     addressed with a seed is turned by an angle up to this, drawn from that seed (Lagrangian data).
+    ``frame_stride`` k (Lagrangian data, ``train.frame_stride``): a sample is the step from frame t
+    to t + k (:mod:`bsms.stride`); each file enters as k trajectories, its frames from each offset
+    0..k-1 every k frames, sharing one scenario (frame time k dt).
     """
 
     def __init__(self, files, options: GraphOptions, noise: NoiseOptions | None = None, cache_dir=None,
-                 progress: bool = False, mirror: bool = False, loss_weight: str = "uniform", rotate: float = 0.0):
+                 progress: bool = False, mirror: bool = False, loss_weight: str = "uniform", rotate: float = 0.0,
+                 frame_stride: int = 1):
         self.files = [str(f) for f in files]
         if not self.files:
             raise ValueError("FrameDataset needs at least one trajectory file")
@@ -339,18 +345,28 @@ class FrameDataset(NumberedSamples):
             if len(trajectory.times) < 2:
                 raise ValueError(f"{source} has {len(trajectory.times)} frame(s); training needs >= 2")
             spec = self._spec(trajectory, source)
-            scenario = Scenario.from_trajectory(trajectory, options, cache_dir, source=source, spec=spec)
+            if frame_stride > 1 and not spec.is_lagrangian:
+                raise ConfigError(f"config key 'train.frame_stride' applies to Lagrangian data; {source} holds "
+                                  f"{spec.describe()} (set train.frame_stride: 1)")
+            if len(trajectory.times) < frame_stride + 1:
+                raise ValueError(f"{source} has {len(trajectory.times)} frames; a frame stride of {frame_stride} "
+                                 f"needs >= {frame_stride + 1}")
+            scenario = Scenario.from_trajectory(strided(trajectory, frame_stride), options, cache_dir, source=source,
+                                                spec=spec)
             if scenario.elastic is not None:
                 scenario.elastic.cache_limit = 0  # samples are drawn across all scenes: keep no unit responses
-            self.scenarios.append(scenario)
             if not spec.is_lagrangian:
+                self.scenarios.append(scenario)
                 self.states.append(eulerian_state(spec, trajectory, source))
                 continue
-            world = world_positions(spec, trajectory, source)
-            positions = scenario.positions(world, trajectory.obstacle_positions)
-            initial = scenario.full(initial_velocity(spec, trajectory, world)[None], 0.0)[0]
-            self.positions.append(positions)
-            self.initial.append(initial)
+            for offset in range(frame_stride):  # every frame starts a step (train.frame_stride)
+                part = strided(trajectory, frame_stride, offset)
+                if len(part.times) < 2:
+                    continue
+                world = world_positions(spec, part, source)
+                self.scenarios.append(scenario if offset == 0 else dataclasses.replace(scenario))  # own loss weight
+                self.positions.append(scenario.positions(world, part.obstacle_positions))
+                self.initial.append(scenario.full(initial_velocity(spec, part, world)[None], 0.0)[0])
         self.dim = self.spec.dim
         if self.rotate and self.states:
             raise ConfigError(f"config key 'train.rotate' turns positions and velocities; {self.files[0]} holds "

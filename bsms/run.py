@@ -128,7 +128,10 @@ class TrainConfig:
     one-step training of Lagrangian data. shard: with several processes (``torchrun``), each holds
     only its share of the training trajectories and draws its part of every batch from it
     (:mod:`bsms.training.batches`): the training set's memory divided by the process count, for data sets
-    too large to hold once per process; ``batch_size`` a multiple of the process count."""
+    too large to hold once per process; ``batch_size`` a multiple of the process count.
+    frame_stride: k data frames per model step (Lagrangian models that carry state; :mod:`bsms.stride`):
+    trained on the steps t -> t + k from every frame, rolled out at k frame times per step with
+    every data frame given back (cubic Hermite between the model's states)."""
 
     steps: int = 10_000
     batch_size: int = 2
@@ -152,6 +155,7 @@ class TrainConfig:
     loss_weight: Literal["uniform", "motion"] = "uniform"
     rotate: float = 0.0
     shard: bool = False
+    frame_stride: int = 1
 
     def validate(self, prefix: str) -> None:
         if not 0.0 <= self.rotate <= 180.0:
@@ -163,7 +167,7 @@ class TrainConfig:
             raise ConfigError(f"config key '{prefix}.trajectories' must be >= 1 (null: every training trajectory), "
                               f"got {self.trajectories}")
         at_least(self, prefix, 1, ("steps", "batch_size", "normalizer_steps", "log_every", "valid_every",
-                                    "valid_samples", "checkpoint_every", "unroll"))
+                                    "valid_samples", "checkpoint_every", "unroll", "frame_stride"))
         at_least(self, prefix, 0, ("seed", "workers", "unroll_warmup"))
         _check_device(self.device, f"{prefix}.device")
 
@@ -244,6 +248,10 @@ class Config:
             raise ConfigError("config key 'train.unroll' must be 1 with 'graph.from_rest': every frame is predicted "
                               f"from the rest shape and the drive alone, so unrolled steps see the same inputs as "
                               f"single steps; got {self.train.unroll}")
+        if self.graph.from_rest and self.train.frame_stride > 1:
+            raise ConfigError("config key 'train.frame_stride' must be 1 with 'graph.from_rest': every frame is "
+                              f"predicted from the rest shape alone, there is no step to stretch; got "
+                              f"{self.train.frame_stride}")
         if self.model.mirror_average and not self.train.mirror:
             raise ConfigError("config key 'model.mirror_average' averages the answers to each frame and to its mirror "
                               "image: train the network on both images (train.mirror: true)")
@@ -407,13 +415,15 @@ def split_files(folder: Path, split: str, fix: str | None = None) -> list[Path]:
 def build_model(config: Config, dim: int, fields: FieldSpec | None = None) -> LearnedSimulator:
     """The learned simulator a config describes, for dimension ``dim`` and the data's field spec
     ``fields`` (default: Lagrangian), untrained."""
-    return LearnedSimulator(
+    model = LearnedSimulator(
         config.model.name, dim, n_levels=config.graph.levels, contact=config.graph.contact,
         n_constants=len(config.graph.constants), latent=config.model.latent, n_passes=config.model.passes,
         hidden_layers=config.model.hidden_layers, max_accumulations=config.train.normalizer_steps,
         core_options=config.model.core_options(dim), fields=fields, penetration=config.graph.penetration,
         clearance=config.graph.clearance, elastic=config.graph.elastic, mirror_average=config.model.mirror_average,
     )
+    model.frame_stride = config.train.frame_stride  # data frames per model step (bsms.stride)
+    return model
 
 
 def load_model(source, which: str = "best", device="cpu") -> tuple[LearnedSimulator, Config, dict]:

@@ -33,12 +33,13 @@ class Ensemble(nn.Module):
             raise ValueError("an ensemble needs at least one member")
         first = members[0]
         for k, member in enumerate(members[1:], start=1):
-            for name in ("dim", "spec", "contact"):
-                if getattr(member, name) != getattr(first, name):
-                    raise ValueError(f"ensemble member {k} has {name} {getattr(member, name)!r}, member 0 "
-                                     f"{getattr(first, name)!r}: every member must learn the same fields")
+            for name in ("dim", "spec", "contact", "frame_stride"):
+                if getattr(member, name, 1) != getattr(first, name, 1):
+                    raise ValueError(f"ensemble member {k} has {name} {getattr(member, name, 1)!r}, member 0 "
+                                     f"{getattr(first, name, 1)!r}: every member must learn the same fields")
         self.members = nn.ModuleList(members)
         self.dim, self.spec, self.contact = first.dim, first.spec, first.contact
+        self.frame_stride = getattr(first, "frame_stride", 1)
         self.n_levels = max(member.n_levels for member in members)
         self.latent = max(member.latent for member in members)
 

@@ -35,6 +35,7 @@ from bsms.models.blocks import compiled_message_passing
 from bsms.models.precision import network_dtype
 from bsms.rollouts.memory import keep_freed_memory
 from bsms.rollouts.motion import SKILL_KEYS
+from bsms.stride import strided_rollouts
 
 __all__ = [
     "Rollout", "rollout", "rollouts", "eulerian_metrics", "rollout_metrics", "field_metrics", "summarize", "body_size",
@@ -306,10 +307,6 @@ def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_
     (N, k) state of the spec's fields per scenario; ``known_states``: None, or one (>= steps + 1,
     N, k) array (or None) per scenario whose rows of prescribed nodes give their fields.
     """
-    device = torch.device(device)
-    network_dtype(precision, device)  # a bad precision fails before any work
-    keep_freed_memory()  # each call's arrays reused, not paged in anew (bsms.rollouts.memory)
-    model = model.to(device).eval()
     n = len(scenarios)
     steps = [steps] * n if np.ndim(steps) == 0 else list(steps)
     known_positions = [None] * n if known_positions is None else list(known_positions)
@@ -317,6 +314,24 @@ def rollouts(model, scenarios: list[Scenario], initial_positions: list, initial_
         raise ValueError(f"give one initial state, step count and known_positions (or None) per scenario; got "
                          f"{n} scenarios, {len(initial_positions)} initial positions, {len(initial_velocities)} "
                          f"initial velocities, {len(steps)} step counts, {len(known_positions)} known_positions")
+    options = {"device": device, "progress": progress, "warmup": warmup, "precision": precision,
+               "initial_states": initial_states, "known_states": known_states, "frames_per_call": frames_per_call}
+    stride = int(getattr(model, "frame_stride", 1))
+    if stride > 1:  # a step of k frames (train.frame_stride): run at k dt, every frame given back
+        return strided_rollouts(_rolled, model, scenarios, initial_positions, initial_velocities, steps,
+                                known_positions, stride, **options)
+    return _rolled(model, scenarios, initial_positions, initial_velocities, steps, known_positions, **options)
+
+
+def _rolled(model, scenarios, initial_positions, initial_velocities, steps: list, known_positions: list,
+            device, progress: bool, warmup: int, precision: str, initial_states, known_states,
+            frames_per_call: int) -> list[Rollout]:
+    """:func:`rollouts` of one model step per row of its scenarios (its arguments checked)."""
+    device = torch.device(device)
+    network_dtype(precision, device)  # a bad precision fails before any work
+    keep_freed_memory()  # each call's arrays reused, not paged in anew (bsms.rollouts.memory)
+    model = model.to(device).eval()
+    n = len(scenarios)
     spec = getattr(model, "spec", None)
     eulerian = spec is not None and not spec.is_lagrangian
     if eulerian and (initial_states is None or len(initial_states) != n):

@@ -176,9 +176,10 @@ class Trainer:
         cache = self.dataset_folder / "hierarchies"
         self.train_set = FrameDataset(self._train_files(), config.graph, config.noise,
                                       cache_dir=cache, progress=progress, mirror=config.train.mirror,
-                                      loss_weight=config.train.loss_weight, rotate=config.train.rotate)
+                                      loss_weight=config.train.loss_weight, rotate=config.train.rotate,
+                                      frame_stride=config.train.frame_stride)
         self.valid_set = FrameDataset(split_files(self.dataset_folder, "valid"), config.graph, cache_dir=cache,
-                                      progress=progress)
+                                      progress=progress, frame_stride=config.train.frame_stride)
         if config.train.validation == "rollout" and not self.valid_set.spec.is_lagrangian:
             raise ConfigError("config key 'train.validation' is 'rollout', but the dataset holds Eulerian fields "
                               f"({self.valid_set.spec.describe()}); validate them one step at a time (one_step)")
@@ -395,7 +396,7 @@ class Trainer:
             self._valid_trajectories = [load_trajectory(path) for path in split_files(self.dataset_folder, "valid")]
         rmse, self.valid_vs_rest = rollout_scores(self.model, self.config.graph, self._valid_trajectories,
                                                   self.dataset_folder / "hierarchies", self.device,
-                                                  self.valid_set.scenarios)
+                                                  self.valid_set.scenarios if t.frame_stride == 1 else None)
         return rmse
 
     # -- the loop

@@ -1,0 +1,123 @@
+"""A learned step that spans k data frames (``train.frame_stride``).
+
+A model trained with stride k learns the step from frame t to frame t + k: its inputs are the
+state at frame t with the velocity (x_t - x_{t-k}) / (k dt), its target the velocity change to
+(x_{t+k} - x_t) / (k dt). :func:`strided` makes that data from a stored trajectory (every k-th
+frame from an offset; training uses every offset, so no frame is wasted), and a rollout of such
+a model (:func:`bsms.rollouts.rollout.rollouts`) runs one model step per k frames and gives
+back every data frame: :func:`upsampled` fills the k - 1 frames between two model states with
+the cubic Hermite curve through them, its tangents the centred differences of the model's
+states (the initial velocity at frame 0, a second-order one-sided difference at the last
+state), so that a rollout is compared, drawn and written frame for frame as any other.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+__all__ = ["strided", "model_steps", "strided_known", "upsampled", "frame_velocities_of", "strided_rollouts"]
+
+
+def strided(trajectory, stride: int, offset: int = 0):
+    """``trajectory`` (a :class:`~datagen.trajectory.Trajectory`) at frames offset, offset + k, ...:
+    times, positions, velocities and moving obstacles taken every ``stride`` frames. The first
+    frame's velocity is the stored one (the solver's, as frame 0's initial condition is);
+    per-frame diagnostics and wall times are dropped (training reads none)."""
+    if stride < 1 or not 0 <= offset < max(stride, 1):
+        raise ValueError(f"a frame stride must be >= 1 and its offset in [0, stride); got {stride}, {offset}")
+    if stride == 1:
+        return trajectory
+    take = slice(offset, None, stride)
+    moving = trajectory.obstacle_positions
+    return dataclasses.replace(
+        trajectory, times=trajectory.times[take], positions=trajectory.positions[take],
+        velocities=trajectory.velocities[take], diagnostics={}, step_diagnostics=None, frame_wall_times=None,
+        obstacle_positions=None if moving is None else moving[take])
+
+
+def model_steps(frames: int, stride: int) -> int:
+    """Model steps that cover ``frames`` data frames at ``stride`` frames per step."""
+    return -(-int(frames) // int(stride))
+
+
+def strided_known(known: np.ndarray | None, frames: int, stride: int) -> np.ndarray | None:
+    """Known positions (>= frames + 1, N, d) at the model's steps: every ``stride``-th row, the
+    last row held past the data's end (a drive known only to frame ``frames`` stays there)."""
+    if known is None:
+        return None
+    rows = np.minimum(np.arange(model_steps(frames, stride) + 1) * stride, len(known) - 1)
+    return known[rows]
+
+
+def upsampled(states: np.ndarray, initial_velocity: np.ndarray, stride: int, frame_dt: float,
+              frames: int) -> np.ndarray:
+    """(F + 1, N, d) positions at every data frame from the model's states (M + 1, N, d), one
+    every ``stride`` frames of ``frame_dt`` (F = min(frames, M stride)): cubic Hermite between
+    consecutive states, tangents the centred differences of the states, the initial velocity at
+    the first state and a second-order one-sided difference at the last."""
+    states = np.asarray(states, dtype=np.float64)
+    if stride == 1:
+        return states[: frames + 1]
+    m = len(states) - 1
+    frames = min(int(frames), m * stride)
+    if m == 0:
+        return states[:1]
+    tangents = np.empty_like(states)  # d x / d u, u the step's fraction
+    tangents[0] = np.asarray(initial_velocity) * stride * frame_dt
+    tangents[1:-1] = 0.5 * (states[2:] - states[:-2])
+    tangents[-1] = states[-1] - states[-2] if m == 1 else 0.5 * (3 * states[-1] - 4 * states[-2] + states[-3])
+    t = np.arange(frames + 1)
+    j = np.minimum(t // stride, m - 1)
+    u = ((t - j * stride) / stride)[:, None, None]
+    h00, h10 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u
+    h01, h11 = -2 * u**3 + 3 * u**2, u**3 - u**2
+    out = h00 * states[j] + h10 * tangents[j] + h01 * states[j + 1] + h11 * tangents[j + 1]
+    out[::stride] = states[: len(out[::stride])]  # the model's own states exactly
+    return out
+
+
+def frame_velocities_of(positions: np.ndarray, initial_velocity: np.ndarray, frame_dt: float) -> np.ndarray:
+    """(T, N, d): the initial velocity at frame 0, then (x_t - x_{t-1}) / dt, the convention of
+    :func:`bsms.data.frame_velocities` (without kinematic rows)."""
+    velocities = np.empty_like(positions)
+    velocities[0] = initial_velocity
+    velocities[1:] = np.diff(positions, axis=0) / frame_dt
+    return velocities
+
+
+def strided_rollouts(run, model, scenarios, initial_positions, initial_velocities, steps, known_positions,
+                     stride: int, **options) -> list:
+    """The rollouts ``run`` (:func:`bsms.rollouts.rollout.rollouts`' own loop, with its arguments)
+    makes of a model of ``stride`` frames per step, on scenarios of one data frame per row: run
+    with the frame time k dt, then given back at every data frame (:func:`upsampled`; kinematic
+    nodes exactly where ``known_positions`` puts them); each frame's time the model step's over
+    k, the upsampling's included."""
+    from bsms.rollouts.rollout import Rollout  # noqa: PLC0415 (the rollout module imports this one)
+
+    if options.get("initial_states") is not None:
+        raise ValueError(f"a frame stride ({stride}) applies to Lagrangian models; this one learned Eulerian fields")
+    for k, n in zip(known_positions, steps, strict=True):
+        if k is not None and len(k) < n + 1:
+            raise ValueError(f"known_positions has {len(k)} frames; a rollout of {n} steps needs {n + 1}")
+    coarse = [dataclasses.replace(s, frame_dt=s.frame_dt * stride) for s in scenarios]
+    counts = [model_steps(n, stride) for n in steps]
+    known = [strided_known(k, n, stride) for k, n in zip(known_positions, steps, strict=True)]
+    results = run(model, coarse, initial_positions, initial_velocities, counts, known, **options)
+    out = []
+    for result, scenario, v0, n, k in zip(results, scenarios, initial_velocities, steps, known_positions,
+                                          strict=True):
+        start = time.perf_counter()
+        positions = upsampled(result.positions, v0, stride, scenario.frame_dt, n)
+        frames = len(positions) - 1
+        if k is not None:
+            kinematic = scenario.kinematic
+            positions[:, kinematic] = k[: frames + 1][:, kinematic]
+        velocities = frame_velocities_of(positions, v0, scenario.frame_dt)
+        spent = time.perf_counter() - start
+        seconds = np.repeat(result.step_seconds / stride, stride)[:frames] + spent / max(frames, 1)
+        nodes = np.repeat(result.graph_nodes, stride, axis=0)[:frames]
+        out.append(Rollout(positions, velocities, seconds, result.finite, dict(result.extra), nodes))
+    return out
