@@ -133,3 +133,20 @@ def test_config_checks_and_a_strided_model_through_training_and_validation(tiny_
     (metrics, result), = learned_rollouts(model, config.graph, trajectories, tmp_path / "cache", frames)
     assert result.positions.shape[0] == frames[0] + 1 and np.isfinite(metrics["vs_rest"])
     assert dataclasses.is_dataclass(result)
+
+
+def test_a_strided_run_trains_validates_by_rollout_and_loads_with_its_stride(tiny_dataset, tmp_path, one_thread):
+    from bsms.run import load_model
+    from bsms.training.trainer import Trainer
+
+    config = load_config(tiny_run_config(tiny_dataset, tmp_path, train={
+        "frame_stride": 2, "steps": 2, "valid_every": 2, "checkpoint_every": 2, "validation": "rollout"},
+        evaluate={"enabled": False}))
+    trainer = Trainer(config)
+    plain = FrameDataset(trainer._train_files(), config.graph)
+    assert len(trainer.train_set.positions) == 2 * len(plain.positions), "two offsets per training file"
+    assert len(trainer.train_set) == len(plain) - len(plain.positions) * 1, "every frame but the last k starts a step"
+    metrics = trainer.fit()
+    assert np.isfinite(metrics["loss"]) and np.isfinite(trainer.valid_vs_rest)
+    model, loaded, _ = load_model(config.run_dir, "latest")
+    assert model.frame_stride == 2 and loaded.train.frame_stride == 2
