@@ -135,6 +135,7 @@ def test_runs_from_states_a_millionth_apart_stay_a_millionth_apart():
     assert 5e-7 < apart[0] < 2e-6 and apart.max() < 3 * apart[0]
 
 
-def test_zero_shot_placement_says_what_to_use_instead():
-    with pytest.raises(ConfigError, match="zero-shot placement is not supported for family pendulum: .* params.pivot"):
+def test_zero_shot_placement_takes_one_plate():  # the placement itself: tests/test_pendulum_place.py
+    with pytest.raises(ConfigError, match="^family 'pendulum' swings one plate on its pin: give meshes as a list of "
+                                          "exactly one Mesh or file path, got none$"):
         family.place([], CONFIGS / "pendulum_quick.yaml")

@@ -26,18 +26,28 @@ radius leaves at least ``ranges.hole_wall`` metres of plate around it, at ``rang
 from the outline's centroid (the nearest such point where none is that far). The plate starts at
 ``angle`` (uniform within the swing's amplitude, ``ranges.amplitude`` degrees) moving either way
 with the speed that makes it turn back at the amplitude.
+
+:func:`place` hangs a user's plate (one 2D triangle mesh with a hole) on the pin for zero-shot
+rollouts (``bsms infer --mesh``): the pin is the largest disk in its hole, the plate scaled and
+started from the middle of the ranges (docs/pendulum.md, "Zero-shot").
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
 from ..config import ConfigError
-from ..scenes.pendulum import clearance
+from ..holes import clearance, holes, largest_disk, play
+from ..mesh import Mesh
+from ..scenes import pendulum as pendulum_scene
+from ..scenes.bodies import read_body
 from ..shapes3d import section_outline
-from .base import check_ranges, integer, log_uniform, split_kinds, uniform
+from ..simulation import resolve_config
+from .base import _bounds, check_ranges, integer, log_midpoint, log_uniform, midpoint, split_kinds, uniform
+from .placement import _dataset_config
 from .press import _fraction, random_polygon, random_stroke
 
 NAME = "pendulum"
@@ -55,6 +65,9 @@ RANGES = {
     "E": [1e7, 2e8], "nu": [0.3, 0.4], "density": [1000.0, 1500.0], "amplitude": [20.0, 90.0],
 }
 GRID = 41  # candidate pivots per axis over the outline's bounding box
+# a placed plate's pin may move about in its hole by MAX_PLAY background cells at most, counting the
+# positions where it overlaps the plate's nodes by PLAY_OVERLAP cells at most (docs/pendulum.md, "Zero-shot")
+MAX_PLAY, PLAY_OVERLAP = 0.5, 0.1
 
 
 def _kinds(r: dict, split: str) -> list[str]:
@@ -159,8 +172,146 @@ def sample(ranges: dict, rng: np.random.Generator, split: str) -> dict:
 
 
 def place(meshes, dconfig, overrides: dict | None = None) -> dict:
-    """Not supported: the scene's plates are outlines with a hole drilled at a drawn pivot; raises
-    ConfigError saying what to use instead."""
-    raise ConfigError(f"zero-shot placement is not supported for family {NAME}: its plates are drawn as outlines "
-                      "with a hole at a pivot; give a polygon outline and a pivot to the pendulum scene instead "
-                      "(params.polygon, params.pivot), or use family glyphs or disks to drop your own mesh")
+    """A ``pendulum`` config swinging one 2D triangle mesh (a Mesh or a file path: a user's plate) on a
+    pin through a hole in it, as this family swings its plates (docs/pendulum.md, "Zero-shot"): the
+    dataset config's params (background, body spacing, room), the mesh as the plate (``params.mesh``)
+    scaled so that its largest extent is the mid-range size and subdivided where it is coarser than the
+    family's plates (``refine``); the pin the largest disk in its hole (:func:`datagen.holes.largest_disk`:
+    the hole itself for a round one) -- its only hole, or the largest, or with ``overrides.pivot`` (a
+    point in the mesh's own units) the one holding that point; mid-range stiffness, Poisson ratio,
+    density and amplitude, the plate starting straight down (``angle`` 0, the middle of the family's
+    starts) turning counter-clockwise (``direction`` 1) at the rigid pendulum's rate for that amplitude.
+    ``overrides`` replace any pendulum scene parameter but those that make the plate (:data:`FIXED`), e.g.
+    ``size``, ``E``, ``nu``, ``density``, ``amplitude``, ``angle``, ``direction``, ``pivot``,
+    ``mesh_size``, ``hole_gap``, ``refine``. ConfigError, naming the mesh, for anything but one 2D mesh
+    of one piece with a hole, a pin under the family's size in background cells (:func:`check_pin`) or
+    a hole the pin could move about in (:data:`MAX_PLAY`)."""
+    if isinstance(meshes, (str, Path, Mesh)) or not isinstance(meshes, (list, tuple)) or len(meshes) != 1:
+        raise ConfigError(_not_one(meshes))
+    overrides = _overrides(overrides)
+    d = _dataset_config(dconfig, NAME)
+    r = check_ranges(NAME, RANGES, d["ranges"])
+    name = _name(meshes[0])
+    entry, mesh = _given(meshes[0], name)
+    loop = _hole(mesh, name, overrides.get("pivot"), r)
+    params = {key: value for key, value in d["params"].items() if key in pendulum_scene.DEFAULTS and key not in FIXED}
+    params.update(
+        kind="mesh", mesh=entry, size=midpoint(r, "size"),
+        E=log_midpoint(r, "E"), nu=midpoint(r, "nu"), density=midpoint(r, "density"),
+        amplitude=midpoint(r, "amplitude"), angle=0.0, direction=1.0, spin=0.0, refine=True,
+    )
+    params.update(overrides, pivot=largest_disk(mesh, loop)[0].tolist())  # the pin's centre, the mesh's units
+    config = {"scene": SCENE, "params": params, "solver": d["solver"], "output": d["output"], "seed": d["seed"]}
+    resolved = resolve_config(config)["params"]  # every value checked now, not when the run starts
+    params["pin_radius"] = check_pin(resolved, r, d["params"], name)
+    return config
+
+
+FIXED = ("kind", "polygon", "mesh", "pin_radius")
+"""Scene parameters a placement sets itself: the plate is the mesh, the pin its hole's largest disk."""
+
+
+def _not_one(meshes) -> str:
+    """The error for ``meshes`` that are not a list of one mesh."""
+    if not isinstance(meshes, (list, tuple)):
+        got = repr(meshes)
+    elif meshes:
+        got = (f"{len(meshes)} meshes ({', '.join(_name(m, k) for k, m in enumerate(meshes))}); place each on its own "
+               "(bsms infer --separately)")
+    else:
+        got = "none"
+    return (f"family {NAME!r} swings one plate on its pin: give meshes as a list of exactly one Mesh or file path, "
+            f"got {got}")
+
+
+def _name(mesh, k: int = 0) -> str:
+    """Mesh ``k`` as an error names it: its file, or ``meshes[k] (a Mesh)``."""
+    return f"file {mesh}" if isinstance(mesh, (str, Path)) else f"meshes[{k}] (a {type(mesh).__name__})"
+
+
+def _overrides(overrides: dict | None) -> dict:
+    """``overrides`` checked: pendulum scene parameters but :data:`FIXED`, and ``refine``."""
+    overrides = dict(overrides or {})
+    known = sorted({*pendulum_scene.DEFAULTS, "refine"} - set(FIXED))
+    for key in overrides:
+        if key not in known:
+            raise ConfigError(f"overrides.{key} is not a {NAME} scene parameter that can be overridden; "
+                              f"known: {', '.join(known)}")
+    return overrides
+
+
+def _given(given, name: str) -> tuple:
+    """(params.mesh entry, Mesh) of the given plate: one 2D triangle mesh of one piece."""
+    if isinstance(given, Mesh):
+        entry, mesh = {"nodes": given.nodes.tolist(), "cells": given.cells.tolist()}, given
+    elif isinstance(given, (str, Path)):
+        mesh, entry = read_body(given, 0), str(Path(given).expanduser().resolve())
+    else:
+        raise ConfigError(f"meshes[0] must be a Mesh or a mesh file path, got {type(given).__name__}")
+    if mesh.dim != DIM:
+        raise ConfigError(f"mesh {name} is a {mesh.dim}D mesh but family {NAME!r} swings 2D plates; give a 2D "
+                          "triangle mesh (z = 0) of the plate")
+    if mesh.n_components != 1:
+        raise ConfigError(f"mesh {name} holds {mesh.n_components} separate pieces but family {NAME!r} swings one "
+                          "plate; give a mesh of one piece")
+    return entry, mesh
+
+
+def _hole(mesh: Mesh, name: str, pivot, r: dict) -> np.ndarray:
+    """The hole the pin goes through (node indices): the one holding ``pivot`` (mesh units) where
+    given, else the only or the largest one."""
+    try:
+        loops = holes(mesh)
+    except ConfigError as exc:
+        raise ConfigError(f"mesh {name}: {exc}") from None
+    if not loops:
+        lo, hi = (100 * v / midpoint(r, "size") for v in _bounds(r, "pin_radius"))
+        raise ConfigError(f"mesh {name} has no hole for the pin: family {NAME!r} hangs its plates on a fixed pin "
+                          "through a round hole in them; mesh the plate with a round hole where it should turn (an "
+                          f"inner boundary: in gmsh, cut a disk out of the surface; the family's holes are "
+                          f"{lo:.1f}-{hi:.1f}% of the plate's largest extent in radius)")
+    if pivot is None:
+        return loops[0]
+    point = np.asarray(pivot, float)
+    if point.shape != (2,) or not np.isfinite(point).all():
+        raise ConfigError(f"overrides.pivot must be one [x, y] point inside a hole of mesh {name}, in its own "
+                          f"units, got {pivot!r}")
+    for loop in loops:
+        if clearance(mesh.nodes[loop], point[None])[0] > 0:
+            return loop
+    centres = [np.round(largest_disk(mesh, loop)[0], 6).tolist() for loop in loops]
+    raise ConfigError(f"overrides.pivot {list(pivot)} lies in none of the {len(loops)} hole(s) of mesh {name}; give "
+                      f"a point inside the hole the pin goes through, in the mesh's own units (the holes' pins "
+                      f"would be centred at {centres})")
+
+
+def _digits(value: float, sense: int) -> float:
+    """``value`` to 4 significant digits, rounded up (``sense`` 1) or down (-1)."""
+    unit = 10.0 ** (math.floor(math.log10(value)) - 3)
+    return round((math.ceil(value / unit) if sense > 0 else math.floor(value / unit)) * unit, 12)
+
+
+def check_pin(p: dict, r: dict, dataset_params: dict, name: str) -> float:
+    """The pin's radius (m) of the resolved placement ``p``; ConfigError where it is under the family's
+    smallest pin in background cells (``ranges.pin_radius`` low over the dataset's ``mesh_size``: a
+    pin of too few cells lets the hole wander, docs/pendulum.md) or where it could move about in its
+    hole by more than :data:`MAX_PLAY` of a background cell."""
+    mesh, centre, radius, loop, _ = pendulum_scene.pinned(p)
+    cells = _bounds(r, "pin_radius")[0] / dataset_params.get("mesh_size", pendulum_scene.DEFAULTS["mesh_size"])
+    spacing = p["mesh_size"]
+    if radius < cells * spacing * (1 - 1e-9):
+        larger, finer = _digits(p["size"] * cells * spacing / radius, 1), _digits(radius / cells, -1)
+        raise ConfigError(
+            f"mesh {name}: the largest pin its hole takes is {1e3 * radius:.3g} mm in radius with the plate scaled to "
+            f"{p['size']:g} m, {radius / spacing:.2f} background cells of {1e3 * spacing:g} mm; family {NAME!r}'s "
+            f"pins are at least {cells:.2f} cells, and fewer let the hole wander off the pin (docs/pendulum.md); "
+            f"mesh a larger hole, scale the plate up (overrides size={larger}) or refine the background (overrides "
+            f"mesh_size={finer})")
+    loose = 0.0 if p["hole_gap"] > 0 else play(mesh, loop, centre, radius, PLAY_OVERLAP * spacing)
+    if loose > MAX_PLAY * spacing:  # a gap given on purpose (hole_gap) is the user's play
+        raise ConfigError(
+            f"mesh {name}: the largest pin its hole takes ({1e3 * radius:.3g} mm in radius with the plate scaled "
+            f"to {p['size']:g} m) could move {1e3 * loose:.3g} mm about in it, {loose / spacing:.2f} background cells "
+            f"of {1e3 * spacing:g} mm, and family {NAME!r}'s joint is a pin that fills its hole (at most {MAX_PLAY} "
+            "cells of play); mesh a round hole, or one the pin touches all round (a square, a regular polygon)")
+    return radius
