@@ -28,7 +28,7 @@ from bsms.config import ConfigError
 from datagen.dataset import load
 from datagen.mesh import Mesh
 
-__all__ = ["mirrored", "trajectories", "random_rotation", "rotated", "reflected", "ROTATED_FIELDS"]
+__all__ = ["mirrored", "strided", "trajectories", "random_rotation", "rotated", "reflected", "ROTATED_FIELDS"]
 
 # The vector fields of a graph on its level-0 nodes (bsms.level_graph.LevelGraph) that turn with it;
 # everything else in a graph is a scalar, an index, or derived from these by the model.
@@ -69,6 +69,23 @@ def _swap_last_two(simplices: np.ndarray) -> np.ndarray:
     order = np.arange(simplices.shape[1])
     order[[-2, -1]] = order[[-1, -2]]
     return simplices[:, order]
+
+
+def strided(trajectory, stride: int, offset: int = 0):
+    """``trajectory`` (a :class:`~datagen.trajectory.Trajectory`) at frames offset, offset + k, ...:
+    times, positions, velocities and moving obstacles taken every ``stride`` frames. The first
+    frame's velocity is the stored one (the solver's, as frame 0's initial condition is);
+    per-frame diagnostics and wall times are dropped (training reads none)."""
+    if stride < 1 or not 0 <= offset < max(stride, 1):
+        raise ValueError(f"a frame stride must be >= 1 and its offset in [0, stride); got {stride}, {offset}")
+    if stride == 1:
+        return trajectory
+    take = slice(offset, None, stride)
+    moving = trajectory.obstacle_positions
+    return dataclasses.replace(
+        trajectory, times=trajectory.times[take], positions=trajectory.positions[take],
+        velocities=trajectory.velocities[take], diagnostics={}, step_diagnostics=None, frame_wall_times=None,
+        obstacle_positions=None if moving is None else moving[take])
 
 
 def trajectories(files, mirror: bool = False):

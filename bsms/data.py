@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from bsms.augment import random_rotation, rotated, trajectories
+from bsms.augment import random_rotation, rotated, strided, trajectories
 from bsms.config import ConfigError
 from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, type_codes, world_positions
 from bsms.graph import bistride_levels
@@ -28,7 +28,6 @@ from bsms.level_graph import FrameArrays, LevelGraph, level_graph
 from bsms.options import GraphOptions, NoiseOptions, saved_graph_options
 from bsms.physics.elastic import HOLD, ElasticResponse
 from bsms.physics.penetration import Clearance, Penetration
-from bsms.stride import strided
 from datagen.dataset import DatasetError
 from datagen.trajectory import NodeType
 
@@ -324,7 +323,7 @@ class FrameDataset(NumberedSamples):
     enters reflected by x -> -x (:mod:`bsms.augment`), after it. ``rotate`` (degrees): a sample
     addressed with a seed is turned by an angle up to this, drawn from that seed (Lagrangian data).
     ``frame_stride`` k (Lagrangian data, ``train.frame_stride``): a sample is the step from frame t
-    to t + k (:mod:`bsms.stride`); each file enters as k trajectories, its frames from each offset
+    to t + k (:mod:`bsms.rollouts.stride`); each file enters as k trajectories, its frames from each offset
     0..k-1 every k frames, sharing one scenario (frame time k dt).
     """
 

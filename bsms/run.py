@@ -129,7 +129,7 @@ class TrainConfig:
     only its share of the training trajectories and draws its part of every batch from it
     (:mod:`bsms.training.batches`): the training set's memory divided by the process count, for data sets
     too large to hold once per process; ``batch_size`` a multiple of the process count.
-    frame_stride: k data frames per model step (Lagrangian models that carry state; :mod:`bsms.stride`):
+    frame_stride: k data frames per model step (Lagrangian models that carry state; :mod:`bsms.rollouts.stride`):
     trained on the steps t -> t + k from every frame, rolled out at k frame times per step with
     every data frame given back (cubic Hermite between the model's states)."""
 
@@ -422,7 +422,7 @@ def build_model(config: Config, dim: int, fields: FieldSpec | None = None) -> Le
         core_options=config.model.core_options(dim), fields=fields, penetration=config.graph.penetration,
         clearance=config.graph.clearance, elastic=config.graph.elastic, mirror_average=config.model.mirror_average,
     )
-    model.frame_stride = config.train.frame_stride  # data frames per model step (bsms.stride)
+    model.frame_stride = config.train.frame_stride  # data frames per model step (bsms.rollouts.stride)
     return model
 
 

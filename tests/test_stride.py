@@ -1,4 +1,4 @@
-"""train.frame_stride: a learned step of k data frames (bsms.stride), trained from every offset and
+"""train.frame_stride: a learned step of k data frames (bsms.rollouts.stride), trained from every offset and
 rolled out with every data frame given back."""
 
 import dataclasses
@@ -8,12 +8,13 @@ import pytest
 import torch
 from conftest import tiny_run_config
 
+from bsms.augment import strided
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType
 from bsms.rollouts.learned_rollouts import learned_rollouts
 from bsms.rollouts.rollout import rollout
+from bsms.rollouts.stride import model_steps, strided_known, upsampled
 from bsms.run import build_model, load_config, prepare_dataset, split_files
-from bsms.stride import model_steps, strided, strided_known, upsampled
 from datagen.dataset import load
 
 OPTIONS = GraphOptions(levels=2)

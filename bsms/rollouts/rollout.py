@@ -35,7 +35,7 @@ from bsms.models.blocks import compiled_message_passing
 from bsms.models.precision import network_dtype
 from bsms.rollouts.memory import keep_freed_memory
 from bsms.rollouts.motion import SKILL_KEYS
-from bsms.stride import strided_rollouts
+from bsms.rollouts.stride import strided_rollouts
 
 __all__ = [
     "Rollout", "rollout", "rollouts", "eulerian_metrics", "rollout_metrics", "field_metrics", "summarize", "body_size",

@@ -2,7 +2,7 @@
 
 A model trained with stride k learns the step from frame t to frame t + k: its inputs are the
 state at frame t with the velocity (x_t - x_{t-k}) / (k dt), its target the velocity change to
-(x_{t+k} - x_t) / (k dt). :func:`strided` makes that data from a stored trajectory (every k-th
+(x_{t+k} - x_t) / (k dt). :func:`bsms.augment.strided` makes that data from a stored trajectory (every k-th
 frame from an offset; training uses every offset, so no frame is wasted), and a rollout of such
 a model (:func:`bsms.rollouts.rollout.rollouts`) runs one model step per k frames and gives
 back every data frame: :func:`upsampled` fills the k - 1 frames between two model states with
@@ -18,24 +18,7 @@ import time
 
 import numpy as np
 
-__all__ = ["strided", "model_steps", "strided_known", "upsampled", "frame_velocities_of", "strided_rollouts"]
-
-
-def strided(trajectory, stride: int, offset: int = 0):
-    """``trajectory`` (a :class:`~datagen.trajectory.Trajectory`) at frames offset, offset + k, ...:
-    times, positions, velocities and moving obstacles taken every ``stride`` frames. The first
-    frame's velocity is the stored one (the solver's, as frame 0's initial condition is);
-    per-frame diagnostics and wall times are dropped (training reads none)."""
-    if stride < 1 or not 0 <= offset < max(stride, 1):
-        raise ValueError(f"a frame stride must be >= 1 and its offset in [0, stride); got {stride}, {offset}")
-    if stride == 1:
-        return trajectory
-    take = slice(offset, None, stride)
-    moving = trajectory.obstacle_positions
-    return dataclasses.replace(
-        trajectory, times=trajectory.times[take], positions=trajectory.positions[take],
-        velocities=trajectory.velocities[take], diagnostics={}, step_diagnostics=None, frame_wall_times=None,
-        obstacle_positions=None if moving is None else moving[take])
+__all__ = ["model_steps", "strided_known", "upsampled", "frame_velocities_of", "strided_rollouts"]
 
 
 def model_steps(frames: int, stride: int) -> int:
@@ -95,8 +78,6 @@ def strided_rollouts(run, model, scenarios, initial_positions, initial_velocitie
     with the frame time k dt, then given back at every data frame (:func:`upsampled`; kinematic
     nodes exactly where ``known_positions`` puts them); each frame's time the model step's over
     k, the upsampling's included."""
-    from bsms.rollouts.rollout import Rollout  # noqa: PLC0415 (the rollout module imports this one)
-
     if options.get("initial_states") is not None:
         raise ValueError(f"a frame stride ({stride}) applies to Lagrangian models; this one learned Eulerian fields")
     for k, n in zip(known_positions, steps, strict=True):
@@ -119,5 +100,6 @@ def strided_rollouts(run, model, scenarios, initial_positions, initial_velocitie
         spent = time.perf_counter() - start
         seconds = np.repeat(result.step_seconds / stride, stride)[:frames] + spent / max(frames, 1)
         nodes = np.repeat(result.graph_nodes, stride, axis=0)[:frames]
-        out.append(Rollout(positions, velocities, seconds, result.finite, dict(result.extra), nodes))
+        out.append(dataclasses.replace(result, positions=positions, velocities=velocities, step_seconds=seconds,
+                                       graph_nodes=nodes))
     return out
