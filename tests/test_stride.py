@@ -11,6 +11,7 @@ from conftest import tiny_run_config
 from bsms.augment import strided
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType
+from bsms.fields import FieldSpec
 from bsms.rollouts.learned_rollouts import learned_rollouts
 from bsms.rollouts.rollout import rollout
 from bsms.rollouts.stride import model_steps, strided_known, upsampled
@@ -151,3 +152,33 @@ def test_a_strided_run_trains_validates_by_rollout_and_loads_with_its_stride(tin
     assert np.isfinite(metrics["loss"]) and np.isfinite(trainer.valid_vs_rest)
     model, loaded, _ = load_model(config.run_dir, "latest")
     assert model.frame_stride == 2 and loaded.train.frame_stride == 2
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_edge_velocity_puts_a_rigid_turns_rate_on_every_mesh_edge(files, compiled, monkeypatch):
+    """model.edge_velocity: each mesh edge's last d + 1 inputs are v_receiver - v_sender and its norm;
+    for a rigid turn at rate w they are w J (x_receiver - x_sender) and w |x_receiver - x_sender|, on
+    every level (the compiled edge inputs and torch's alike)."""
+    from bsms.models import native
+    from bsms.models.simulator import LearnedSimulator
+
+    if not compiled:
+        monkeypatch.setattr(native, "edge_offsets", lambda *args, **kwargs: None)
+    graph = FrameDataset(files[:1], GraphOptions(levels=3))[3]
+    rate, centre = 2.5, graph.pos.mean(0)
+    turn = torch.tensor([[0.0, 1.0], [-1.0, 0.0]], dtype=graph.pos.dtype)  # row vector @ turn = J x
+    graph.velocity = rate * (graph.pos - centre) @ turn
+    model = LearnedSimulator("bsms_gnn", 2, n_levels=3, edge_velocity=True)
+    for group in model.edge_normalizers:  # identity statistics: the raw inputs come through
+        mesh = group[0]
+        mesh.count.fill_(1.0), mesh.total.zero_(), mesh.total_squares.fill_(1.0)
+    assert mesh.total.shape == (9,), "rest and world offsets and norms, then the velocity difference and norm"
+    with torch.no_grad():
+        for level in range(3):
+            inputs = model._level(graph, level, accumulate=False)
+            index, features = inputs.edge_sets[0]
+            offsets = features[:, 3:5].double()  # world offsets: receiver minus sender
+            np.testing.assert_allclose(features[:, 6:8].double(), rate * offsets @ turn.double(), rtol=1e-4, atol=1e-6)
+            np.testing.assert_allclose(features[:, 8].double(), rate * offsets.norm(dim=1), rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="edge_velocity differences node velocities along mesh edges"):
+        LearnedSimulator("bsms_gnn", 3, edge_velocity=True, fields=FieldSpec.lagrangian(3, 2))

@@ -37,6 +37,9 @@ class ModelConfig:
     images (in one pass of about 1.7 single ones where every block runs fused, as the press
     recipe's lean network does; twice elsewhere); the graph is built once. Training's loss is the
     network's own answer, unchanged (``train.mirror`` gives it both images, and is required).
+    edge_velocity (Lagrangian data): mesh edges also carry the difference of their nodes' velocities
+    and its norm, so that a rigid turn's rate is an edge input (Delta v = omega x Delta x) rather than
+    something the messages must work out.
     """
 
     name: Literal["bsms_gnn", "meshgraphnets", "ms_gnn_grid", "graph_unets"] = "bsms_gnn"
@@ -52,6 +55,7 @@ class ModelConfig:
     layer_norm: bool = True
     first_level: int = 0
     mirror_average: bool = False
+    edge_velocity: bool = False
 
     def validate(self, prefix: str) -> None:
         at_least(self, prefix, 1, ("latent", "hidden_layers", "passes", "grid_levels"))

@@ -76,6 +76,9 @@ class LearnedSimulator(nn.Module):
         max_accumulations: batches after which the normalisers freeze.
         core_options: options of the core beyond these (``transition`` of bsms_gnn, ...).
         fields: the data's field spec (default: Lagrangian of dimension ``dim``).
+        edge_velocity: mesh edges also carry v_receiver - v_sender and its norm (Lagrangian data with
+            material and world positions of one dimension): a rigid turn's rate is then on every edge,
+            Delta v = omega x Delta x, instead of something messages must compare node by node.
         mirror_average: :meth:`velocity_change` (inference) is the mean of the answer and the
             reflection of the answer to the reflected graph (x -> -x, :func:`bsms.augment.reflected`):
             exactly mirror-equivariant, the network run on both images (in one pass where the core
@@ -86,7 +89,7 @@ class LearnedSimulator(nn.Module):
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
                  core_options: dict | None = None, fields: FieldSpec | None = None, penetration: bool = False,
                  clearance: bool = False, elastic: bool = False,
-                 mirror_average: bool = False):
+                 mirror_average: bool = False, edge_velocity: bool = False):
         super().__init__()
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
@@ -96,12 +99,15 @@ class LearnedSimulator(nn.Module):
         if mirror_average and not spec.is_lagrangian:
             raise ValueError(f"mirror_average reflects positions and velocities; this data has {spec.describe()}: "
                              "leave it off")
+        if edge_velocity and not (spec.is_lagrangian and spec.material_dim == dim):
+            raise ValueError(f"edge_velocity differences node velocities along mesh edges; this data has "
+                             f"{spec.describe()}: leave it off")
         self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
-        self.mirror_average = mirror_average
+        self.mirror_average, self.edge_velocity = mirror_average, edge_velocity
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
         self.penetration, self.clearance, self.elastic = penetration, clearance, elastic
         node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance) + int(elastic))
-        edge_dims = [spec.mesh_edge_dim] + ([spec.contact_edge_dim] if contact else [])
+        edge_dims = [spec.mesh_edge_dim + (dim + 1) * int(edge_velocity)] + ([spec.contact_edge_dim] if contact else [])
         self.core = build_core(core, node_in, spec.node_out, edge_dims, n_levels=n_levels, latent=latent,
                                n_passes=n_passes, hidden_layers=hidden_layers, options=dict(core_options or {}))
         if getattr(self.core, "needs_context", False) and spec.material_dim != dim:
@@ -149,8 +155,9 @@ class LearnedSimulator(nn.Module):
         spec = self.spec
         normalizers = self.edge_normalizers[l]
         if spec.is_lagrangian and spec.material_dim == self.dim:
-            rest_and_pos = torch.cat([graph.rest_pos, graph.pos], dim=-1).index_select(0, nodes)
-            world = rest_and_pos[:, self.dim:]
+            parts = [graph.rest_pos, graph.pos] + ([graph.velocity] if self.edge_velocity else [])
+            rest_and_pos = torch.cat(parts, dim=-1).index_select(0, nodes)
+            world = rest_and_pos[:, self.dim: 2 * self.dim]
             edge_sets = [EdgeSet(edge_index, self._edge_inputs(normalizers[0], rest_and_pos, edge_index, accumulate,
                                                                reflect))]
         elif reflect:
