@@ -87,6 +87,8 @@ class _TimedScenario:
         self.frames = _Timed(scenario.frames, "frame arrays")  # a rollout's frames of one track at once
 
     def __getattr__(self, name):
+        if name == "_scenario" or name.startswith("__"):  # while copy.copy builds a twin (a strided rollout's)
+            raise AttributeError(name)
         return getattr(self._scenario, name)
 
 

@@ -13,6 +13,7 @@ state), so that a rollout is compared, drawn and written frame for frame as any 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 
@@ -71,6 +72,14 @@ def frame_velocities_of(positions: np.ndarray, initial_velocity: np.ndarray, fra
     return velocities
 
 
+def _with_frame_dt(scenario, frame_dt: float):
+    """A shallow copy of ``scenario`` (a :class:`~bsms.data.Scenario`, or an object standing in for
+    one) whose frames are ``frame_dt`` apart; its graphs, hierarchy and caches shared."""
+    twin = copy.copy(scenario)
+    twin.frame_dt = frame_dt
+    return twin
+
+
 def strided_rollouts(run, model, scenarios, initial_positions, initial_velocities, steps, known_positions,
                      stride: int, **options) -> list:
     """The rollouts ``run`` (:func:`bsms.rollouts.rollout.rollouts`' own loop, with its arguments)
@@ -83,7 +92,7 @@ def strided_rollouts(run, model, scenarios, initial_positions, initial_velocitie
     for k, n in zip(known_positions, steps, strict=True):
         if k is not None and len(k) < n + 1:
             raise ValueError(f"known_positions has {len(k)} frames; a rollout of {n} steps needs {n + 1}")
-    coarse = [dataclasses.replace(s, frame_dt=s.frame_dt * stride) for s in scenarios]
+    coarse = [_with_frame_dt(s, s.frame_dt * stride) for s in scenarios]
     counts = [model_steps(n, stride) for n in steps]
     known = [strided_known(k, n, stride) for k, n in zip(known_positions, steps, strict=True)]
     results = run(model, coarse, initial_positions, initial_velocities, counts, known, **options)
