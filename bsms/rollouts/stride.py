@@ -19,7 +19,9 @@ import time
 
 import numpy as np
 
-__all__ = ["model_steps", "strided_known", "upsampled", "frame_velocities_of", "strided_rollouts"]
+from bsms.data import frame_velocities
+
+__all__ = ["model_steps", "strided_known", "upsampled", "strided_rollouts"]
 
 
 def model_steps(frames: int, stride: int) -> int:
@@ -63,15 +65,6 @@ def upsampled(states: np.ndarray, initial_velocity: np.ndarray, stride: int, fra
     return out
 
 
-def frame_velocities_of(positions: np.ndarray, initial_velocity: np.ndarray, frame_dt: float) -> np.ndarray:
-    """(T, N, d): the initial velocity at frame 0, then (x_t - x_{t-1}) / dt, the convention of
-    :func:`bsms.data.frame_velocities` (without kinematic rows)."""
-    velocities = np.empty_like(positions)
-    velocities[0] = initial_velocity
-    velocities[1:] = np.diff(positions, axis=0) / frame_dt
-    return velocities
-
-
 def _with_frame_dt(scenario, frame_dt: float):
     """A shallow copy of ``scenario`` (a :class:`~bsms.data.Scenario`, or an object standing in for
     one) whose frames are ``frame_dt`` apart; its graphs, hierarchy and caches shared."""
@@ -105,7 +98,7 @@ def strided_rollouts(run, model, scenarios, initial_positions, initial_velocitie
         if k is not None:
             kinematic = scenario.kinematic
             positions[:, kinematic] = k[: frames + 1][:, kinematic]
-        velocities = frame_velocities_of(positions, v0, scenario.frame_dt)
+        velocities = frame_velocities(positions, np.asarray(v0, np.float64), scenario.frame_dt)
         spent = time.perf_counter() - start
         seconds = np.repeat(result.step_seconds / stride, stride)[:frames] + spent / max(frames, 1)
         nodes = np.repeat(result.graph_nodes, stride, axis=0)[:frames]
