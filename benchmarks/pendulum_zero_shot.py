@@ -26,6 +26,7 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+from press_zero_shot import circle  # noqa: E402
 
 from bsms.infer import infer, parse_overrides  # noqa: E402
 from datagen.scenes import get_scene  # noqa: E402
@@ -34,20 +35,15 @@ ROOT = Path(__file__).resolve().parents[1]
 SIZE, PIN, SPACING = 0.095, 0.00675, 0.0025  # m: the family's mid-range plate and pin, its plates' mesh size
 
 
-def _circle(radius: float, corners: int, center=(0.0, 0.0), start: float = 0.0, stop: float = 2 * np.pi):
-    angles = np.linspace(start, stop, corners, endpoint=stop - start < 2 * np.pi - 1e-9)
-    return np.stack([center[0] + radius * np.cos(angles), center[1] + radius * np.sin(angles)], axis=1)
-
-
 def plates() -> dict[str, tuple[np.ndarray, tuple[float, float]]]:
     """(outline, pivot) by name, in the outline's own units (scaled to 9.5 cm when meshed)."""
     arch = np.concatenate([[[0.0, 0.0], [0.025, 0.0]],
-                           _circle(0.03, 15, (0.055, 0.0), np.pi, 0.0)[1:-1],
+                           circle(0.03, 15, (0.055, 0.0), np.pi, 0.0)[1:-1],
                            [[0.085, 0.0], [0.11, 0.0], [0.11, 0.06], [0.0, 0.06]]])
     # the disk of radius 0.05 less the disk of radius 0.04 about (0.03, 0): they cross at (0.03, +-0.04)
     horn = np.arctan2(0.04, 0.03)
-    crescent = np.concatenate([_circle(0.05, 40, (0.0, 0.0), horn, 2 * np.pi - horn),
-                               _circle(0.04, 30, (0.03, 0.0), 1.5 * np.pi, 0.5 * np.pi)[1:-1]])
+    crescent = np.concatenate([circle(0.05, 40, (0.0, 0.0), horn, 2 * np.pi - horn),
+                               circle(0.04, 30, (0.03, 0.0), 1.5 * np.pi, 0.5 * np.pi)[1:-1]])
     return {
         "arch": (arch, (0.0125, 0.045)),
         "notched plate": (np.array([[0.0, 0.0], [0.12, 0.0], [0.12, 0.06], [0.07, 0.06], [0.06, 0.032],
@@ -55,7 +51,7 @@ def plates() -> dict[str, tuple[np.ndarray, tuple[float, float]]]:
         "step": (np.array([[0.0, 0.0], [0.12, 0.0], [0.12, 0.04], [0.06, 0.04], [0.06, 0.09], [0.0, 0.09]]),
                  (0.03, 0.07)),
         "trapezoid": (np.array([[0.0, 0.0], [0.12, 0.0], [0.085, 0.07], [0.035, 0.07]]), (0.06, 0.05)),
-        "hexagon": (_circle(0.055, 6), (0.0, 0.03)),
+        "hexagon": (circle(0.055, 6), (0.0, 0.03)),
         "crescent": (crescent, (-0.025, 0.03)),
     }
 
@@ -65,14 +61,12 @@ def write_plates(folder: Path) -> dict[str, Path]:
     scene = get_scene("pendulum")
     files = {}
     for name, (outline, pivot) in plates().items():
-        extent = float(np.ptp(outline, axis=0).max())
         p = scene.params({"polygon": outline.tolist(), "pivot": list(pivot), "size": SIZE,
                           "pin_radius": PIN, "body_size": SPACING})
         mesh, _ = scene.plate(p)
         path = folder / f"{name.replace(' ', '_')}.msh"
         mesh.write(str(path))
         files[name] = path
-        assert extent > 0
     return files
 
 

@@ -55,8 +55,10 @@ def outlines() -> dict[str, np.ndarray]:
     return {"star": star, "L bracket": bracket, "notched plate": notched}
 
 
-def _circle(radius: float, corners: int, center=(0.0, 0.0)) -> np.ndarray:
-    angles = np.linspace(0.0, 2 * np.pi, corners, endpoint=False)
+def circle(radius: float, corners: int, center=(0.0, 0.0), start: float = 0.0, stop: float = 2 * np.pi) -> np.ndarray:
+    """``corners`` points on the circle from angle ``start`` to ``stop`` (a whole turn: the last
+    point before the first again; an arc: both ends included)."""
+    angles = np.linspace(start, stop, corners, endpoint=stop - start < 2 * np.pi - 1e-9)
     return np.stack([center[0] + radius * np.cos(angles), center[1] + radius * np.sin(angles)], axis=1)
 
 
@@ -74,9 +76,9 @@ def wider_set() -> dict[str, tuple[np.ndarray, list[np.ndarray]]]:
         "U channel": np.array([[0.0, 0.0], [0.11, 0.0], [0.11, 0.09], [0.08, 0.09], [0.08, 0.03], [0.03, 0.03],
                                [0.03, 0.09], [0.0, 0.09]]),
         "arch": arch,
-        "disk": _circle(0.05, 40),
+        "disk": circle(0.05, 40),
         "trapezoid": np.array([[0.0, 0.0], [0.12, 0.0], [0.085, 0.07], [0.035, 0.07]]),
-        "hexagon": _circle(0.055, 6),
+        "hexagon": circle(0.055, 6),
         "cross": np.array([[0.035, 0.0], [0.07, 0.0], [0.07, 0.035], [0.105, 0.035], [0.105, 0.07], [0.07, 0.07],
                            [0.07, 0.105], [0.035, 0.105], [0.035, 0.07], [0.0, 0.07], [0.0, 0.035],
                            [0.035, 0.035]]),
@@ -85,9 +87,9 @@ def wider_set() -> dict[str, tuple[np.ndarray, list[np.ndarray]]]:
         "inverted triangle": np.array([[0.05, 0.0], [0.07, 0.0], [0.12, 0.08], [0.0, 0.08]]),
         "step": np.array([[0.0, 0.0], [0.12, 0.0], [0.12, 0.04], [0.06, 0.04], [0.06, 0.09], [0.0, 0.09]]),
         "plate with hole": np.array([[0.0, 0.0], [0.12, 0.0], [0.12, 0.09], [0.0, 0.09]]),
-        "ring": _circle(0.055, 48),
+        "ring": circle(0.055, 48),
     }
-    holes = {"plate with hole": [_circle(0.02, 32, (0.06, 0.045))], "ring": [_circle(0.03, 40)]}
+    holes = {"plate with hole": [circle(0.02, 32, (0.06, 0.045))], "ring": [circle(0.03, 40)]}
     return {name: (ring, holes.get(name, [])) for name, ring in rings.items()}
 
 

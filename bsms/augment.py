@@ -76,7 +76,7 @@ def strided(trajectory, stride: int, offset: int = 0):
     times, positions, velocities and moving obstacles taken every ``stride`` frames. The first
     frame's velocity is the stored one (the solver's, as frame 0's initial condition is);
     per-frame diagnostics and wall times are dropped (training reads none)."""
-    if stride < 1 or not 0 <= offset < max(stride, 1):
+    if stride < 1 or not 0 <= offset < stride:
         raise ValueError(f"a frame stride must be >= 1 and its offset in [0, stride); got {stride}, {offset}")
     if stride == 1:
         return trajectory

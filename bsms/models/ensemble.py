@@ -36,7 +36,8 @@ class Ensemble(nn.Module):
             for name in ("dim", "spec", "contact", "frame_stride"):
                 if getattr(member, name, 1) != getattr(first, name, 1):
                     raise ValueError(f"ensemble member {k} has {name} {getattr(member, name, 1)!r}, member 0 "
-                                     f"{getattr(first, name, 1)!r}: every member must learn the same fields")
+                                     f"{getattr(first, name, 1)!r}: every member must learn the same fields "
+                                     "with the same step")
         self.members = nn.ModuleList(members)
         self.dim, self.spec, self.contact = first.dim, first.spec, first.contact
         self.frame_stride = getattr(first, "frame_stride", 1)

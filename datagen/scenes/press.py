@@ -45,6 +45,7 @@ from scipy.spatial import ConvexHull
 
 from .. import shapes
 from ..config import ConfigError
+from ..holes import signed_area
 from ..mesh import Mesh
 from ..mpm.boundary import Wall
 from ..mpm.colliders import Collider, Path
@@ -118,9 +119,7 @@ def body_mesh(p: dict) -> Mesh:
         if ring.ndim != 2 or ring.shape[1] != 2 or len(ring) < 3 or not np.isfinite(ring).all():
             raise ConfigError(f"params.polygon must list at least 3 [x, y] vertices, got {p['polygon']!r}")
         ring = ring * (p["size"] / float(np.ptp(ring, axis=0).max()))
-        x, y = ring.T
-        area = 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
-        mesh = shapes.polygon(ring, size=_spacing(p, area))
+        mesh = shapes.polygon(ring, size=_spacing(p, abs(signed_area(ring))))
     else:  # a font height that makes the letter's largest extent ``size``
         coarse = shapes.glyph(p["char"], 0.25 * p["size"], height=p["size"])
         scale = p["size"] / float(np.ptp(coarse.nodes, axis=0).max())

@@ -11,6 +11,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from .. import shapes, shapes3d
 from ..config import ConfigError
+from ..holes import signed_area
 from ..mesh import Mesh
 from .base import merge_bodies
 from .bodies import place_body, read_body
@@ -78,8 +79,7 @@ def _flat(rings) -> Mesh:
 def profile_area(rings) -> float:
     """The area of (outer, holes) rings (shoelace)."""
     def area(r):
-        x, y = np.asarray(r, float).T
-        return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+        return abs(signed_area(np.asarray(r, float)))
 
     return sum(area(o) - sum(area(h) for h in hs) for o, hs in rings)
 
