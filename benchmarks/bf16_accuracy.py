@@ -34,7 +34,7 @@ def one_step_rmse(model, dataset, precision: str, batch_size: int = 8) -> float:
     for start in range(0, len(dataset), batch_size):
         batch = Batch.from_data_list([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))])
         with torch.no_grad():
-            change = model.physical(model(batch, precision=precision)).double()
+            change = model.physical(model(batch, precision=precision), batch).double()
         error = (change - batch.target.double()) * batch.frame_dt.double()[:, None]
         squared += float(error[batch.loss_mask].square().sum())
         count += int(batch.loss_mask.sum())

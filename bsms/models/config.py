@@ -40,6 +40,11 @@ class ModelConfig:
     edge_velocity (Lagrangian data): mesh edges also carry the difference of their nodes' velocities
     and its norm, so that a rigid turn's rate is an edge input (Delta v = omega x Delta x) rather than
     something the messages must work out.
+    rigid_part (Lagrangian data): the output is the velocity change's rigid-motion part over each
+    body's free nodes (the best 2D similarity or 3D affine field: the smallest space holding what
+    rigid motion gives a velocity change over a step, :mod:`bsms.models.body_motion`) plus the rest,
+    each from channels of its own with its own normaliser: a stiff body's rest is small, and so are
+    the errors it lets through.
     """
 
     name: Literal["bsms_gnn", "meshgraphnets", "ms_gnn_grid", "graph_unets"] = "bsms_gnn"
@@ -56,6 +61,7 @@ class ModelConfig:
     first_level: int = 0
     mirror_average: bool = False
     edge_velocity: bool = False
+    rigid_part: bool = False
 
     def validate(self, prefix: str) -> None:
         at_least(self, prefix, 1, ("latent", "hidden_layers", "passes", "grid_levels"))

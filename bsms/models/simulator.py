@@ -20,6 +20,7 @@ from bsms.data import LevelGraph, NodeType
 from bsms.fields import FieldSpec
 from bsms.models import native
 from bsms.models.blocks import EdgeSet
+from bsms.models.body_motion import rigid_part
 from bsms.models.bsms_gnn import BSMSGNN
 from bsms.models.inputs import Context, Level
 from bsms.models.meshgraphnets import MeshGraphNets
@@ -83,13 +84,18 @@ class LearnedSimulator(nn.Module):
             reflection of the answer to the reflected graph (x -> -x, :func:`bsms.augment.reflected`):
             exactly mirror-equivariant, the network run on both images (in one pass where the core
             can: :meth:`_paired`). Lagrangian data only.
+        rigid_part: the output is the velocity change's rigid-motion part over each body's free nodes
+            (its best 2D similarity, 3D affine field: :mod:`bsms.models.body_motion`) and the rest,
+            each from its own channels of the core (2 d outputs) with its own normaliser, both fitted
+            as parts of the one answer: a stiff body's rest is small, so are its errors (Lagrangian
+            data with material and world positions of one dimension).
     """
 
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
                  core_options: dict | None = None, fields: FieldSpec | None = None, penetration: bool = False,
                  clearance: bool = False, elastic: bool = False,
-                 mirror_average: bool = False, edge_velocity: bool = False):
+                 mirror_average: bool = False, edge_velocity: bool = False, rigid_part: bool = False):
         super().__init__()
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
@@ -102,19 +108,25 @@ class LearnedSimulator(nn.Module):
         if edge_velocity and not (spec.is_lagrangian and spec.material_dim == dim):
             raise ValueError(f"edge_velocity differences node velocities along mesh edges; this data has "
                              f"{spec.describe()}: leave it off")
+        if rigid_part and not (spec.is_lagrangian and spec.material_dim == dim and dim in (2, 3)):
+            raise ValueError(f"rigid_part splits a body's velocity change into its rigid-motion part and the rest; "
+                             f"this data has {spec.describe()}: leave it off")
         self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
-        self.mirror_average, self.edge_velocity = mirror_average, edge_velocity
+        self.mirror_average, self.edge_velocity, self.rigid_part = mirror_average, edge_velocity, rigid_part
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
         self.penetration, self.clearance, self.elastic = penetration, clearance, elastic
         node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance) + int(elastic))
         edge_dims = [spec.mesh_edge_dim + (dim + 1) * int(edge_velocity)] + ([spec.contact_edge_dim] if contact else [])
-        self.core = build_core(core, node_in, spec.node_out, edge_dims, n_levels=n_levels, latent=latent,
+        node_out = spec.node_out * (2 if rigid_part else 1)
+        self.core = build_core(core, node_in, node_out, edge_dims, n_levels=n_levels, latent=latent,
                                n_passes=n_passes, hidden_layers=hidden_layers, options=dict(core_options or {}))
         if getattr(self.core, "needs_context", False) and spec.material_dim != dim:
             raise ValueError(f"model {core} reads material and world positions of one dimension; this data has "
                              f"{dim}D positions on a {spec.material_dim}D mesh: use bsms_gnn or meshgraphnets")
         self.node_normalizer = Normalizer(node_in, max_accumulations)
-        self.output_normalizer = Normalizer(spec.node_out, max_accumulations)
+        self.output_normalizer = Normalizer(spec.node_out, max_accumulations)  # rigid_part: of the rigid-motion part
+        if rigid_part:  # of the rest
+            self.residual_normalizer = Normalizer(spec.node_out, max_accumulations)
         self.edge_normalizers = nn.ModuleList(
             nn.ModuleList(Normalizer(size, max_accumulations) for size in edge_dims) for _ in range(self.n_levels)
         )
@@ -198,15 +210,41 @@ class LearnedSimulator(nn.Module):
         flip[:: self.dim + 1] = -1.0  # the first component of each offset; lengths stay
         return torch.cat([normalizer(raw), normalizer(raw * flip)], dim=1)
 
-    def _context(self, graph: LevelGraph, accumulate: bool) -> Context:
+    @staticmethod
+    def _graph_ids(graph: LevelGraph) -> tuple[Tensor, int]:
+        """((N,) the graph of each node of a batch, the number of graphs)."""
         counts = graph["n_nodes_0"]
         if torch.is_tensor(counts):  # a batch: one count per graph
             ids = torch.arange(len(counts), device=graph.pos.device)
-            graph_ids = ids.repeat_interleave(counts.to(graph.pos.device))
-            n_graphs = len(counts)
-        else:
-            graph_ids, n_graphs = torch.zeros(graph.pos.shape[0], dtype=torch.long, device=graph.pos.device), 1
+            return ids.repeat_interleave(counts.to(graph.pos.device)), len(counts)
+        return torch.zeros(graph.pos.shape[0], dtype=torch.long, device=graph.pos.device), 1
+
+    def _context(self, graph: LevelGraph, accumulate: bool) -> Context:
+        graph_ids, n_graphs = self._graph_ids(graph)
         return Context(torch.cat([graph.rest_pos, graph.pos], dim=-1), graph_ids, n_graphs, self.dim, accumulate)
+
+    def _rigid(self, field: Tensor, graph: LevelGraph) -> Tensor:
+        """``field``'s rigid-motion part per body (:func:`~bsms.models.body_motion.rigid_part`; one body per
+        graph, fitted over its free nodes)."""
+        ids, n = self._graph_ids(graph)
+        return rigid_part(field, graph.pos.to(field.dtype), ids, n, graph.node_type == NodeType.FREE)
+
+    def _parts(self, prediction: Tensor, graph: LevelGraph) -> tuple[Tensor, Tensor]:
+        """rigid_part: the (rigid-motion part, rest) of the normalised ``prediction`` (N, 2 d), in physical units."""
+        d = self.spec.node_out
+        rigid = self._rigid(self.output_normalizer.inverse(prediction[:, :d]), graph)
+        rest = prediction[:, d:] * self.residual_normalizer.std.to(prediction.dtype)
+        return rigid, rest - self._rigid(rest, graph)
+
+    def accumulate_outputs(self, graph: LevelGraph) -> None:
+        """Feed the output normalisers ``graph``'s targets on its ``loss_mask`` nodes (rigid_part: the
+        rigid-motion part to the output normaliser, the rest to the residual one)."""
+        if not self.rigid_part:
+            self.output_normalizer.accumulate(graph.target[graph.loss_mask])
+            return
+        rigid = self._rigid(graph.target, graph)
+        self.output_normalizer.accumulate(rigid[graph.loss_mask])
+        self.residual_normalizer.accumulate((graph.target - rigid)[graph.loss_mask])
 
     def forward(self, graph: LevelGraph, accumulate: bool = False, precision: str = "f32") -> Tensor:
         """Normalised velocity change per node, (N, d) float32. ``accumulate`` feeds the normalisers;
@@ -233,22 +271,33 @@ class LearnedSimulator(nn.Module):
         :meth:`forward`.
         """
         if accumulate:
-            self.output_normalizer.accumulate(graph.target[graph.loss_mask])
+            self.accumulate_outputs(graph)
         return self.prediction_loss(self(graph, accumulate, precision), graph, reduction)
 
     def prediction_loss(self, prediction: Tensor, graph: LevelGraph, reduction: str = "mean") -> Tensor:
         """The loss of :meth:`loss` of a ``prediction`` (N, node_out) already made of ``graph``
         (multi-step training, :mod:`bsms.training.unroll`, goes on from the prediction it scores)."""
-        error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)
+        if self.rigid_part:  # each part's error in its own normaliser's units
+            rigid, rest = self._parts(prediction, graph)
+            target_rigid = self._rigid(graph.target, graph)
+            error = (((rigid - target_rigid) / self.output_normalizer.std.to(rigid.dtype)).square().sum(-1)
+                     + ((rest - graph.target + target_rigid) / self.residual_normalizer.std.to(rest.dtype))
+                     .square().sum(-1))
+        else:
+            error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)
         if "loss_weight" in graph:  # train.loss_weight (bsms.data.FrameDataset)
             error = error * graph.loss_weight
         error = error[graph.loss_mask]
         return error.sum() if reduction == "sum" else error.mean()
 
-    def physical(self, prediction: Tensor) -> Tensor:
-        """The network's normalised ``prediction`` in physical units (non-free nodes as the network
-        gives them)."""
-        return self.output_normalizer.inverse(prediction)
+    def physical(self, prediction: Tensor, graph: LevelGraph | None = None) -> Tensor:
+        """The network's normalised ``prediction`` of ``graph`` in physical units (non-free nodes as the
+        network gives them; ``graph`` needed by rigid_part models, whose parts are fitted on it)."""
+        if not self.rigid_part:
+            return self.output_normalizer.inverse(prediction)
+        if graph is None:
+            raise ValueError("a rigid_part model's answer is fitted per body: give physical() the graph it answers")
+        return sum(self._parts(prediction, graph))
 
     @torch.no_grad()
     def velocity_change(self, graph: LevelGraph, precision: str = "f32") -> Tensor:
@@ -256,14 +305,14 @@ class LearnedSimulator(nn.Module):
         the velocity change of Lagrangian data, the spec's outputs of Eulerian data (the name
         predates specs); precision: as in :meth:`forward`."""
         if not self.mirror_average:
-            change = self.physical(self(graph, precision=precision))
+            change = self.physical(self(graph, precision=precision), graph)
         else:
             image = reflected(graph)
             paired = self._paired(graph, image, precision)
             ours, theirs = paired if paired is not None else (self(graph, precision=precision),
                                                               self(image, precision=precision))
-            change = self.physical(ours)
-            change = 0.5 * (change + self.physical(theirs) * self._flip(change))
+            change = self.physical(ours, graph)
+            change = 0.5 * (change + self.physical(theirs, image) * self._flip(change))
         return torch.where((graph.node_type == NodeType.FREE)[:, None], change, torch.zeros_like(change))
 
     def _paired(self, graph: LevelGraph, image: LevelGraph, precision: str) -> tuple[Tensor, Tensor] | None:

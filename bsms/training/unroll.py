@@ -127,7 +127,7 @@ def _advance(model, samples: UnrollSamples, states: list[_State], graph: LevelGr
              through: bool) -> list[_State] | None:
     """The states of the next step from the model's ``prediction`` on ``graph`` (None where a
     state went non-finite): free nodes integrated, kinematic nodes the data's next frame."""
-    change = model.output_normalizer.inverse(prediction if through else prediction.detach())
+    change = model.physical(prediction if through else prediction.detach(), graph)
     counts = _node_counts(graph)
     out = []
     for state, rows, nodes in zip(states, torch.split(change, counts), torch.split(graph.scenario_nodes, counts),
@@ -190,7 +190,7 @@ def unrolled_loss(model, batch: UnrollBatch | LevelGraph, samples: UnrollSamples
         trained = last or gradient != "last"
         with torch.set_grad_enabled(torch.is_grad_enabled() and trained):
             if accumulate and k == 0:
-                model.output_normalizer.accumulate(graph.target[graph.loss_mask])
+                model.accumulate_outputs(graph)
             prediction = model(graph, accumulate and k == 0, precision)
             if trained:
                 losses.append(model.prediction_loss(prediction, graph, reduction="sum"))

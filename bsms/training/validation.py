@@ -24,7 +24,7 @@ def one_step_rmse(model, valid_set, samples: int, batch_size: int, device, preci
     spec = model.spec
     for start in range(0, len(picks), batch_size):
         batch = Batch.from_data_list([valid_set[int(i)] for i in picks[start:start + batch_size]]).to(device)
-        change = model.physical(model(batch, precision=precision))
+        change = model.physical(model(batch, precision=precision), batch)
         error = change - batch.target
         if spec.is_lagrangian:
             error = error * batch.frame_dt[:, None]

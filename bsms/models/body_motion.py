@@ -1,0 +1,63 @@
+"""A body's velocity change split into its rigid-motion part and the rest (``model.rigid_part``).
+
+Rigid motion over a step gives a Lagrangian velocity change that is a linear field of position:
+with secant velocities (x_{t+1} - x_t) / dt, a body turning by theta about an axis n through p
+has Delta v = (R(theta) + R(-theta) - 2 I)(x - p) / dt = 2 (cos theta - 1)(I - n n^T)(x - p) / dt,
+plus (R(theta) - I)(x - p) / dt times the change of its turn rate, plus a translation. The
+smallest space of fields holding all of these, at any step length:
+
+- 2D: the similarity fields f_s(x) = a + s (x - c) + w J (x - c) (translation, isotropic scale
+  rate, turn rate; 4 parameters), I - n n^T being the identity in the plane;
+- 3D: the affine fields f_s(x) = a + A (x - c) (12 parameters), the matrices I - n n^T of all
+  axes spanning the symmetric ones.
+
+:func:`rigid_part` gives the field of that space closest to a node field (least squares over the
+body's free nodes, every node weighted alike; c their centroid); the rest is the deformation. A
+stiff body's velocity change is almost all rigid part, and a model that predicts the two with
+their own normalisers (:class:`~bsms.models.simulator.LearnedSimulator`) errs on the rest only in
+proportion to the deformation, while its rigid part is fitted over all the body's nodes, so
+node-by-node errors average out instead of tearing the body apart.
+
+Bodies are the graphs of a batch (one body per scene; where a scene holds several, they share one
+field and the rest carries their differences: still exact, with less to gain).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def _sums(values: Tensor, ids: Tensor, n: int) -> Tensor:
+    """Sum of ``values`` (N, ...) per id (N,) in [0, n) -> (n, ...)."""
+    return values.new_zeros((n, *values.shape[1:])).index_add_(0, ids, values)
+
+
+def rigid_part(field: Tensor, pos: Tensor, ids: Tensor, n_bodies: int, mask: Tensor) -> Tensor:
+    """(N, d) the field of the module's space (2D similarity, 3D affine) closest to ``field`` (N, d)
+    over the ``mask`` nodes (N,) bool of each body (``ids`` (N,) in [0, ``n_bodies``)), at positions
+    ``pos`` (N, d), evaluated at every node (masked or not). A body with no masked node gets zeros;
+    one whose masked nodes leave part of the space unresolved (all at one point, in 3D on one
+    plane) gets the least-norm fit of the rest of it."""
+    dim = pos.shape[1]
+    if dim not in (2, 3):
+        raise ValueError(f"rigid parts are built for 2D and 3D positions, got {dim}D")
+    weight = mask.to(field.dtype)[:, None]
+    count = _sums(weight, ids, n_bodies).clamp(min=1.0)
+    centre = _sums(weight * pos, ids, n_bodies) / count
+    p = pos - centre.index_select(0, ids)
+    part = (_sums(weight * field, ids, n_bodies) / count).index_select(0, ids)
+    if dim == 3:  # A = (sum f p^T)(sum p p^T)^+
+        moments = _sums(weight[:, :, None] * field[:, :, None] * p[:, None, :], ids, n_bodies)
+        spread = _sums(weight[:, :, None] * p[:, :, None] * p[:, None, :], ids, n_bodies)
+        linear = moments @ torch.linalg.pinv(spread, hermitian=True)
+        return part + (linear.index_select(0, ids) @ p[:, :, None])[:, :, 0]
+    # 2D: p and J p are orthogonal at every node and of one length, and both sum to zero
+    squares = _sums(weight * p.square().sum(1, keepdim=True), ids, n_bodies)  # (B, 1)
+    safe = squares.clamp(min=torch.finfo(field.dtype).tiny)
+    turned = torch.stack([-p[:, 1], p[:, 0]], 1)
+    for basis in (p, turned):
+        rate = torch.where(squares > 0, _sums(weight * (basis * field).sum(1, keepdim=True), ids, n_bodies) / safe,
+                           0.0)
+        part = part + rate.index_select(0, ids) * basis
+    return part
