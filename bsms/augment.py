@@ -97,6 +97,26 @@ def trajectories(files, mirror: bool = False):
             yield mirrored(trajectory, source), f"{source}, mirrored"
 
 
+def position_noise(rng: np.random.Generator, pos: np.ndarray, free: np.ndarray, std: float,
+                   rigid: bool = False) -> np.ndarray:
+    """(N, d) training noise on the positions ``pos`` of the ``free`` (N, 1) nodes: normal of ``std``
+    per component (``noise.position``); ``rigid`` (``noise.rigid``): its rigid-motion part over the
+    free nodes (the scene one body: :func:`bsms.models.body_motion.rigid_part`, a 2D similarity or
+    3D affine field), scaled by sqrt(free components / the space's dimension) so that each component
+    keeps variance std^2 -- noise only in what a ``model.rigid_part`` model's rigid part can err in."""
+    dx = free * rng.normal(0.0, std, pos.shape)
+    mask = free[:, 0]
+    if not rigid or not mask.any():
+        return dx
+    from bsms.models.body_motion import rigid_part
+
+    d = pos.shape[1]
+    part = rigid_part(torch.from_numpy(dx), torch.from_numpy(np.asarray(pos, np.float64)),
+                      torch.zeros(len(pos), dtype=torch.long), 1, torch.from_numpy(mask)).numpy()
+    space = d + 2 if d == 2 else d * (d + 1)  # 2D similarity fields: 4; 3D affine: 12
+    return free * part * np.sqrt(mask.sum() * d / space)
+
+
 def random_rotation(dim: int, degrees: float, rng: np.random.Generator) -> np.ndarray:
     """A (dim, dim) rotation by an angle drawn uniformly from [-degrees, degrees]: in 2D about
     the plane's normal, in 3D about an axis drawn uniformly on the sphere (1D: the identity)."""

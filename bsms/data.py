@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from bsms.augment import random_rotation, rotated, strided, trajectories
+from bsms.augment import position_noise, random_rotation, rotated, strided, trajectories
 from bsms.config import ConfigError
 from bsms.fields import FieldSpec, eulerian_state, initial_velocity, spec_of, type_codes, world_positions
 from bsms.graph import bistride_levels
@@ -461,14 +461,14 @@ class FrameDataset(NumberedSamples):
             free = (scenario.node_type == NodeType.FREE)[:, None]
             target = np.where(free, coming, target)
             if noise_seed is not None and self.noise.position > 0:
-                dx = free * np.random.default_rng(noise_seed).normal(0.0, self.noise.position, pos.shape)
+                dx = position_noise(np.random.default_rng(noise_seed), pos, free, self.noise.position, self.noise.rigid)
                 pos += dx
                 target = target - dx / scenario.frame_dt
             return pos, np.where(free, 0.0, velocity), target
         if noise_seed is not None and (self.noise.position > 0 or self.noise.velocity > 0):
             rng = np.random.default_rng(noise_seed)
             free = (scenario.node_type == NodeType.FREE)[:, None]
-            dx = free * rng.normal(0.0, self.noise.position, pos.shape)
+            dx = position_noise(rng, pos, free, self.noise.position, self.noise.rigid)
             dv = free * rng.normal(0.0, self.noise.velocity, pos.shape)
             pos += dx
             velocity += dx / scenario.frame_dt + dv

@@ -177,12 +177,17 @@ class NoiseOptions:
         restores it).
     fields: Eulerian data: std of the noise on other input fields by name, e.g. ``{density: 10}``
         (thesis Table 4.4); a predicted change restores it.
+    rigid: the position noise is its rigid-motion part over each scene's free nodes (a random 2D
+        similarity or 3D affine field of the same per-component variance, :func:`bsms.augment.position_noise`):
+        for ``model.rigid_part`` models, whose rest (the deformation) then stays as small as the data's,
+        while the rigid part learns to undo what it can err in. Lagrangian data only.
     """
 
     position: float = 0.0
     velocity: float = 0.0
     gamma: float = 0.1
     fields: dict[str, float] = field(default_factory=dict)
+    rigid: bool = False
 
     def validate(self, prefix: str = "noise") -> None:
         for name in ("position", "velocity"):
@@ -205,6 +210,9 @@ class NoiseOptions:
         if spec.is_lagrangian and self.fields:
             raise ConfigError(f"config key '{prefix}.fields' applies to Eulerian data; {source} is Lagrangian (use "
                               f"'{prefix}.position' and '{prefix}.velocity')")
+        if self.rigid and not (spec.is_lagrangian and spec.material_dim == spec.dim in (2, 3)):
+            raise ConfigError(f"config key '{prefix}.rigid' draws rigid motions of 2D or 3D bodies; {source} holds "
+                              f"{spec.describe()}: leave it false")
         inputs = [f.name for f in spec.inputs]
         unknown = [name for name in self.fields if name not in inputs]
         if not spec.is_lagrangian and (self.position > 0 or unknown):

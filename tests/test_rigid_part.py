@@ -8,10 +8,13 @@ import pytest
 import torch
 from conftest import tiny_run_config
 
+from bsms.augment import position_noise
+from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType
 from bsms.fields import FieldSpec
 from bsms.models.body_motion import rigid_part
 from bsms.models.simulator import LearnedSimulator
+from bsms.options import NoiseOptions
 from bsms.run import load_config, load_model, split_files
 from bsms.training.trainer import Trainer
 
@@ -143,3 +146,38 @@ def test_a_rigid_part_run_trains_validates_by_rollout_and_loads(tiny_dataset, tm
     assert model.rigid_part and loaded.model.rigid_part
     assert float(model.residual_normalizer.count) > 0
     assert torch.equal(model.residual_normalizer.total, trainer.model.residual_normalizer.total)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_rigid_noise_is_a_random_rigid_field_of_the_asked_variance_on_the_free_nodes(dim):
+    rng = np.random.default_rng(dim)
+    pos = rng.normal(size=(60, dim))
+    free = (np.arange(60) % 5 != 0)[:, None]
+    draws = np.stack([position_noise(rng, pos, free, 1e-3, rigid=True) for _ in range(400)])
+    assert np.all(draws[:, ~free[:, 0]] == 0)
+    ids, mask = torch.zeros(60, dtype=torch.long), torch.from_numpy(free[:, 0])
+    for dx in draws[:5]:
+        t = torch.from_numpy(dx)
+        assert float((t - rigid_part(t, torch.from_numpy(pos), ids, 1, mask))[mask].abs().max()) < 1e-15
+    variance = draws[:, free[:, 0]].var()
+    assert abs(variance / 1e-6 - 1) < 0.1  # 400 draws of 4 (2D) or 12 (3D) dimensions
+    assert np.array_equal(position_noise(np.random.default_rng(1), pos, free, 1e-3),
+                          free * np.random.default_rng(1).normal(0.0, 1e-3, pos.shape)), "node noise as before"
+
+
+def test_rigid_noise_leaves_the_targets_rest_as_the_data_has_it(tiny_folder):
+    noise = NoiseOptions(position=1e-3, rigid=True)
+    files = split_files(tiny_folder, "train")[:1]
+    noisy, clean = FrameDataset(files, GraphOptions(levels=2), noise), FrameDataset(files, GraphOptions(levels=2))
+    model = LearnedSimulator("bsms_gnn", 2, n_levels=2, latent=8, rigid_part=True)
+    for index in (1, 4):
+        a, b = noisy[(index, 77)], clean[index]
+        assert float((a.pos - b.pos).abs().max()) > 1e-4
+        added = (a.target - b.target).double()
+        ids = torch.zeros(a.num_nodes, dtype=torch.long)
+        free = a.node_type == NodeType.FREE
+        rest = added - rigid_part(added, a.pos.double(), ids, 1, free)
+        assert float(rest[free].abs().max()) < 2e-6 * float(added.abs().max())  # float32 graphs: 2.6e-7
+    assert model.rigid_part
+    with pytest.raises(ConfigError, match="'noise.rigid' draws rigid motions of 2D or 3D bodies"):
+        noise.check(FieldSpec.lagrangian(3, 2), "dataset cloth")
