@@ -422,6 +422,7 @@ def build_model(config: Config, dim: int, fields: FieldSpec | None = None) -> Le
         core_options=config.model.core_options(dim), fields=fields, penetration=config.graph.penetration,
         clearance=config.graph.clearance, elastic=config.graph.elastic, mirror_average=config.model.mirror_average,
         edge_velocity=config.model.edge_velocity, rigid_part=config.model.rigid_part,
+        rigid_step=config.model.rigid_step,
     )
     model.frame_stride = config.train.frame_stride  # data frames per model step (bsms.rollouts.stride)
     return model

@@ -12,7 +12,7 @@ from bsms.augment import position_noise
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType
 from bsms.fields import FieldSpec
-from bsms.models.body_motion import rigid_part
+from bsms.models.body_motion import rigid_part, rigid_step
 from bsms.models.simulator import LearnedSimulator
 from bsms.options import NoiseOptions
 from bsms.run import load_config, load_model, split_files
@@ -181,3 +181,47 @@ def test_rigid_noise_leaves_the_targets_rest_as_the_data_has_it(tiny_folder):
     assert model.rigid_part
     with pytest.raises(ConfigError, match="'noise.rigid' draws rigid motions of 2D or 3D bodies"):
         noise.check(FieldSpec.lagrangian(3, 2), "dataset cloth")
+
+
+def _distances(x):
+    return (x[:, None] - x[None]).norm(dim=-1)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_rigid_step_keeps_rigid_motion_and_makes_any_affine_step_rigid(dim):
+    gen = torch.Generator().manual_seed(20 + dim)
+    x = torch.randn(40, dim, generator=gen, dtype=torch.float64)
+    ids, mask = _one(40)
+    dt = torch.tensor([0.04], dtype=torch.float64)
+    axis = None if dim == 2 else [0.2, -0.5, 1.0]
+    pivot = torch.randn(dim, generator=gen, dtype=torch.float64)
+    turned = (x - pivot) @ _turn(axis, 0.9).T + pivot + 0.003
+    velocity = (turned - x) / dt
+    torch.testing.assert_close(rigid_step(velocity, x, ids, 1, mask, dt), velocity, rtol=0, atol=1e-12)
+    strain = 0.1 * torch.randn(dim, dim, generator=gen, dtype=torch.float64)  # stretch and shear of 10%
+    stepped = rigid_step(velocity + (x - x.mean(0)) @ strain.T / dt, x, ids, 1, mask, dt)
+    torch.testing.assert_close(_distances(x + dt * stepped), _distances(x), rtol=0, atol=1e-12)
+    wobble = torch.randn(40, dim, generator=gen, dtype=torch.float64)
+    basis = torch.cat([torch.ones(40, 1, dtype=torch.float64), x], 1)
+    wobble = 1e-3 * (wobble - basis @ torch.linalg.lstsq(basis, wobble).solution)  # non-affine: kept as it is
+    kept = rigid_step(velocity + (x - x.mean(0)) @ strain.T / dt + wobble, x, ids, 1, mask, dt) - stepped
+    torch.testing.assert_close(kept, wobble, rtol=0, atol=1e-12)
+
+
+def test_a_rigid_step_model_moves_a_stiff_body_without_changing_its_shape(frame):
+    torch.manual_seed(1)
+    frame = frame.clone()
+    frame.velocity = 3.0 * (frame.pos - frame.pos.mean(0)) @ torch.tensor([[0.0, 1.0], [-1.0, 0.0]])  # turning
+    model = LearnedSimulator("bsms_gnn", 2, n_levels=3, latent=16, rigid_part=True, rigid_step=True)
+    _identity(model.output_normalizer, 0.5)
+    _identity(model.residual_normalizer, 1e-12)  # no rest: what moves is the affine part
+    free = frame.node_type == NodeType.FREE
+    change = model.velocity_change(frame).double()
+    coming = frame.pos.double() + frame.frame_dt.double()[:, None] * (frame.velocity.double() + change)
+    before, after = _distances(frame.pos.double()[free]), _distances(coming[free])
+    moved = float((after - before).abs().max())
+    model.rigid_step = False
+    loose = frame.pos.double() + frame.frame_dt.double()[:, None] * (frame.velocity.double()
+                                                                      + model.velocity_change(frame).double())
+    assert float((_distances(loose[free]) - before).abs().max()) > 1e3 * moved
+    assert moved < 1e-6 * float(before.max())  # float32 graphs

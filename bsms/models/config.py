@@ -45,6 +45,9 @@ class ModelConfig:
     rigid motion gives a velocity change over a step, :mod:`bsms.models.body_motion`) plus the rest,
     each from channels of its own with its own normaliser: a stiff body's rest is small, and so are
     the errors it lets through.
+    rigid_step (Lagrangian data): at inference each step's next velocity has its affine part over each
+    body's free nodes made the nearest rigid motion (polar factor, :func:`bsms.models.body_motion.rigid_step`):
+    a stiff body keeps its size and shape however the answer's affine part errs. For stiff bodies.
     """
 
     name: Literal["bsms_gnn", "meshgraphnets", "ms_gnn_grid", "graph_unets"] = "bsms_gnn"
@@ -62,6 +65,7 @@ class ModelConfig:
     mirror_average: bool = False
     edge_velocity: bool = False
     rigid_part: bool = False
+    rigid_step: bool = False
 
     def validate(self, prefix: str) -> None:
         at_least(self, prefix, 1, ("latent", "hidden_layers", "passes", "grid_levels"))

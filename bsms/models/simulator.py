@@ -20,7 +20,7 @@ from bsms.data import LevelGraph, NodeType
 from bsms.fields import FieldSpec
 from bsms.models import native
 from bsms.models.blocks import EdgeSet
-from bsms.models.body_motion import rigid_part
+from bsms.models.body_motion import rigid_part, rigid_step
 from bsms.models.bsms_gnn import BSMSGNN
 from bsms.models.inputs import Context, Level
 from bsms.models.meshgraphnets import MeshGraphNets
@@ -89,13 +89,18 @@ class LearnedSimulator(nn.Module):
             each from its own channels of the core (2 d outputs) with its own normaliser, both fitted
             as parts of the one answer: a stiff body's rest is small, so are its errors (Lagrangian
             data with material and world positions of one dimension).
+        rigid_step: at inference (every rollout) the next velocity's affine part over each body's free
+            nodes is made a rigid motion, the rotation nearest it (:func:`~bsms.models.body_motion.rigid_step`):
+            a stiff body keeps its size and shape however the answer's affine part errs. For stiff bodies
+            (whose affine strain the frames do not show); same data as rigid_part.
     """
 
     def __init__(self, core: str, dim: int, n_levels: int = 1, contact: bool = False, n_constants: int = 0,
                  latent: int = 128, n_passes: int = 15, hidden_layers: int = 2, max_accumulations: int = 1_000_000,
                  core_options: dict | None = None, fields: FieldSpec | None = None, penetration: bool = False,
                  clearance: bool = False, elastic: bool = False,
-                 mirror_average: bool = False, edge_velocity: bool = False, rigid_part: bool = False):
+                 mirror_average: bool = False, edge_velocity: bool = False, rigid_part: bool = False,
+                 rigid_step: bool = False):
         super().__init__()
         if core not in CORES:
             raise ValueError(f"unknown model {core!r}; choose one of {', '.join(CORES)}")
@@ -108,11 +113,13 @@ class LearnedSimulator(nn.Module):
         if edge_velocity and not (spec.is_lagrangian and spec.material_dim == dim):
             raise ValueError(f"edge_velocity differences node velocities along mesh edges; this data has "
                              f"{spec.describe()}: leave it off")
-        if rigid_part and not (spec.is_lagrangian and spec.material_dim == dim and dim in (2, 3)):
-            raise ValueError(f"rigid_part splits a body's velocity change into its rigid-motion part and the rest; "
+        if (rigid_part or rigid_step) and not (spec.is_lagrangian and spec.material_dim == dim and dim in (2, 3)):
+            raise ValueError(f"rigid_part and rigid_step split a body's velocity into its rigid-motion part and "
+                             f"the rest; "
                              f"this data has {spec.describe()}: leave it off")
         self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
         self.mirror_average, self.edge_velocity, self.rigid_part = mirror_average, edge_velocity, rigid_part
+        self.rigid_step = rigid_step
         self.n_levels = 1 if core in SINGLE_LEVEL else n_levels
         self.penetration, self.clearance, self.elastic = penetration, clearance, elastic
         node_in = spec.node_in + spec.n_types + n_constants + dim * (int(penetration) + int(clearance) + int(elastic))
@@ -236,6 +243,18 @@ class LearnedSimulator(nn.Module):
         rest = prediction[:, d:] * self.residual_normalizer.std.to(prediction.dtype)
         return rigid, rest - self._rigid(rest, graph)
 
+    def _rigid_step(self, change: Tensor, graph: LevelGraph) -> Tensor:
+        """``change`` with the next velocity's affine part per body a rigid motion (rigid_step)."""
+        ids, n = self._graph_ids(graph)
+        free = graph.node_type == NodeType.FREE
+        weight = free.to(torch.float64)
+        counts = weight.new_zeros(n).index_add_(0, ids, weight).clamp(min=1.0)
+        dt = weight.new_zeros(n).index_add_(0, ids, weight * graph.frame_dt.double()) / counts
+        velocity = graph.velocity.double()
+        coming = rigid_step(velocity + change.double(), graph.pos.double(), ids, n, free,
+                            torch.where(dt > 0, dt, 1.0))
+        return (coming - velocity).to(change.dtype)
+
     def accumulate_outputs(self, graph: LevelGraph) -> None:
         """Feed the output normalisers ``graph``'s targets on its ``loss_mask`` nodes (rigid_part: the
         rigid-motion part to the output normaliser, the rest to the residual one)."""
@@ -313,6 +332,8 @@ class LearnedSimulator(nn.Module):
                                                               self(image, precision=precision))
             change = self.physical(ours, graph)
             change = 0.5 * (change + self.physical(theirs, image) * self._flip(change))
+        if self.rigid_step:
+            change = self._rigid_step(change, graph)
         return torch.where((graph.node_type == NodeType.FREE)[:, None], change, torch.zeros_like(change))
 
     def _paired(self, graph: LevelGraph, image: LevelGraph, precision: str) -> tuple[Tensor, Tensor] | None:
