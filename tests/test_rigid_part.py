@@ -131,7 +131,7 @@ def test_a_rigid_part_model_splits_its_answer_and_scores_each_part_in_its_own_un
     exact = torch.cat([(target / 0.5), (target - rigid) / 0.01], 1).float()
     assert float(model.prediction_loss(exact, frame)) < 1e-9
     assert float(model.prediction_loss(exact + 0.1 * torch.randn_like(exact), frame)) > 1e-3
-    with pytest.raises(ValueError, match="rigid_part splits a body's velocity change into its rigid-motion part"):
+    with pytest.raises(ValueError, match="rigid_part and rigid_step split a body's velocity into its rigid-motion part"):
         LearnedSimulator("bsms_gnn", 3, rigid_part=True, fields=FieldSpec.lagrangian(3, 2))
 
 

@@ -115,8 +115,7 @@ class LearnedSimulator(nn.Module):
                              f"{spec.describe()}: leave it off")
         if (rigid_part or rigid_step) and not (spec.is_lagrangian and spec.material_dim == dim and dim in (2, 3)):
             raise ValueError(f"rigid_part and rigid_step split a body's velocity into its rigid-motion part and "
-                             f"the rest; "
-                             f"this data has {spec.describe()}: leave it off")
+                             f"the rest; this data has {spec.describe()}: leave them off")
         self.dim, self.contact, self.spec, self.latent = dim, contact, spec, latent
         self.mirror_average, self.edge_velocity, self.rigid_part = mirror_average, edge_velocity, rigid_part
         self.rigid_step = rigid_step
@@ -266,7 +265,8 @@ class LearnedSimulator(nn.Module):
         self.residual_normalizer.accumulate((graph.target - rigid)[graph.loss_mask])
 
     def forward(self, graph: LevelGraph, accumulate: bool = False, precision: str = "f32") -> Tensor:
-        """Normalised velocity change per node, (N, d) float32. ``accumulate`` feeds the normalisers;
+        """Normalised velocity change per node, (N, d) float32 (rigid_part: (N, 2 d), the rigid part's
+        channels then the rest's, :meth:`physical` joins them). ``accumulate`` feeds the normalisers;
         ``precision`` (``auto``, ``bf16``, ``f32``: :mod:`bsms.models.precision`) is the core
         network's number format; features and normalisers are float32 in every precision."""
         if graph.n_levels < self.n_levels:
