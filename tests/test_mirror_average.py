@@ -135,8 +135,8 @@ def test_an_export_can_turn_the_mirror_average_on(tiny_dataset, tmp_path, capsys
     assert model.mirror_average and saved.model.mirror_average
     assert "mirror_average: true" in (tmp_path / "on" / "config.yaml").read_text()
     torch.testing.assert_close(model.state_dict(), load_model(config.run_dir, "latest")[0].state_dict(), rtol=0, atol=0)
-    for item, message in (("model.latent=3", "give KEY=VALUE with KEY one of model.mirror_average"),
-                          ("model.mirror_average", "give KEY=VALUE with KEY one of model.mirror_average"),
+    for item, message in (("model.latent=3", "give KEY=VALUE with KEY one of model.mirror_average, model.rigid_step"),
+                          ("model.mirror_average", "give KEY=VALUE with KEY one of model.mirror_average, model.rigid_step"),
                           ("model.mirror_average=1", "config key 'model.mirror_average' must be true or false, got 1"),
                           ("model.mirror_average=[", "the value is not valid YAML")):
         assert export_main([str(config.run_dir), str(tmp_path / "bad"), "--set", item]) == 2

@@ -12,6 +12,7 @@ from bsms.augment import position_noise
 from bsms.config import ConfigError
 from bsms.data import FrameDataset, GraphOptions, NodeType
 from bsms.fields import FieldSpec
+from bsms.infer.pretrained import export
 from bsms.models.body_motion import rigid_part, rigid_step
 from bsms.models.simulator import LearnedSimulator
 from bsms.options import NoiseOptions
@@ -146,6 +147,11 @@ def test_a_rigid_part_run_trains_validates_by_rollout_and_loads(tiny_dataset, tm
     assert model.rigid_part and loaded.model.rigid_part
     assert float(model.residual_normalizer.count) > 0
     assert torch.equal(model.residual_normalizer.total, trainer.model.residual_normalizer.total)
+    assert not model.rigid_step
+    export(config.run_dir, tmp_path / "stepped", "latest", ["model.rigid_step=true"])  # inference only
+    stepped, saved, _ = load_model(tmp_path / "stepped")
+    assert stepped.rigid_step and saved.model.rigid_step
+    torch.testing.assert_close(stepped.state_dict(), model.state_dict(), rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -17,7 +17,8 @@ listing them, written last; the runs must share their graph options and their fa
 
 ``--set KEY=VALUE`` changes a config key of :data:`SETTABLE` in what is written: keys that say how
 the weights answer at inference, not what they are (``--set model.mirror_average=true``: a run
-trained with ``train.mirror`` answers as the mean of it and its mirror image, :mod:`bsms.models.config`).
+trained with ``train.mirror`` answers as the mean of it and its mirror image; ``--set model.rigid_step=true``:
+each step's affine part made the nearest rigid motion, :mod:`bsms.models.config`).
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ __all__ = ["KEEP", "SETTABLE", "export", "export_ensemble", "main", "parse_setti
 KEEP = ("format", "config", "dim", "fields", "step", "best_valid", "seconds", "model")
 """The checkpoint entries a pretrained model keeps (inference needs no optimiser state)."""
 
-SETTABLE = ("model.mirror_average",)
+SETTABLE = ("model.mirror_average", "model.rigid_step")
 """Config keys an export may change (``--set``): how trained weights answer at inference, never
 what they are."""
 
