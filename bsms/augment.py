@@ -108,13 +108,12 @@ def position_noise(rng: np.random.Generator, pos: np.ndarray, free: np.ndarray, 
     mask = free[:, 0]
     if not rigid or not mask.any():
         return dx
-    from bsms.models.body_motion import rigid_part
+    from bsms.models.body_motion import rigid_part, space_dimension
 
     d = pos.shape[1]
     part = rigid_part(torch.from_numpy(dx), torch.from_numpy(np.asarray(pos, np.float64)),
                       torch.zeros(len(pos), dtype=torch.long), 1, torch.from_numpy(mask)).numpy()
-    space = d + 2 if d == 2 else d * (d + 1)  # 2D similarity fields: 4; 3D affine: 12
-    return free * part * np.sqrt(mask.sum() * d / space)
+    return free * part * np.sqrt(mask.sum() * d / space_dimension(d))
 
 
 def random_rotation(dim: int, degrees: float, rng: np.random.Generator) -> np.ndarray:

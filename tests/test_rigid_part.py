@@ -203,14 +203,15 @@ def test_a_rigid_step_keeps_rigid_motion_and_makes_any_affine_step_rigid(dim):
     pivot = torch.randn(dim, generator=gen, dtype=torch.float64)
     turned = (x - pivot) @ _turn(axis, 0.9).T + pivot + 0.003
     velocity = (turned - x) / dt
-    torch.testing.assert_close(rigid_step(velocity, x, ids, 1, mask, dt), velocity, rtol=0, atol=1e-12)
+    steps = dt.expand(40)  # each node's step
+    torch.testing.assert_close(rigid_step(velocity, x, ids, 1, mask, steps), velocity, rtol=0, atol=1e-12)
     strain = 0.1 * torch.randn(dim, dim, generator=gen, dtype=torch.float64)  # stretch and shear of 10%
-    stepped = rigid_step(velocity + (x - x.mean(0)) @ strain.T / dt, x, ids, 1, mask, dt)
+    stepped = rigid_step(velocity + (x - x.mean(0)) @ strain.T / dt, x, ids, 1, mask, steps)
     torch.testing.assert_close(_distances(x + dt * stepped), _distances(x), rtol=0, atol=1e-12)
     wobble = torch.randn(40, dim, generator=gen, dtype=torch.float64)
     basis = torch.cat([torch.ones(40, 1, dtype=torch.float64), x], 1)
     wobble = 1e-3 * (wobble - basis @ torch.linalg.lstsq(basis, wobble).solution)  # non-affine: kept as it is
-    kept = rigid_step(velocity + (x - x.mean(0)) @ strain.T / dt + wobble, x, ids, 1, mask, dt) - stepped
+    kept = rigid_step(velocity + (x - x.mean(0)) @ strain.T / dt + wobble, x, ids, 1, mask, steps) - stepped
     torch.testing.assert_close(kept, wobble, rtol=0, atol=1e-12)
 
 

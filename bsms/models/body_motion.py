@@ -28,6 +28,11 @@ import torch
 from torch import Tensor
 
 
+def space_dimension(dim: int) -> int:
+    """The dimension of the rigid-motion space of :func:`rigid_part`: 4 in 2D (similarity), 12 in 3D (affine)."""
+    return 4 if dim == 2 else dim * (dim + 1)
+
+
 def _sums(values: Tensor, ids: Tensor, n: int) -> Tensor:
     """Sum of ``values`` (N, ...) per id (N,) in [0, n) -> (n, ...)."""
     return values.new_zeros((n, *values.shape[1:])).index_add_(0, ids, values)
@@ -80,8 +85,12 @@ def rigid_step(velocity: Tensor, pos: Tensor, ids: Tensor, n_bodies: int, mask: 
     body's map x -> x + dt (a + A (x - c)) replaced by x -> x + dt a + R (x - c), R the rotation
     nearest I + dt A (its polar factor), the rest (the non-affine deformation) kept.
     A stiff body then keeps its size and shape to within the rest however its affine part errs.
-    ``dt`` (B,) each body's step."""
+    ``dt`` (N,) each node's step (a body's: the mean over its ``mask`` nodes; a body without one
+    keeps its velocity)."""
     p, mean, linear = _fit(velocity, pos, ids, n_bodies, mask, affine=True)
+    weight = mask.to(velocity.dtype)
+    dt = _sums(weight * dt.to(velocity.dtype), ids, n_bodies) / _sums(weight, ids, n_bodies).clamp(min=1.0)
+    dt = torch.where(dt > 0, dt, 1.0)  # (B,); a body without masked nodes: linear 0, nothing changes
     eye = torch.eye(pos.shape[1], dtype=velocity.dtype, device=velocity.device)
     u, _, vh = torch.linalg.svd(eye + dt[:, None, None] * linear)
     flip = torch.ones_like(u[:, 0])

@@ -235,23 +235,19 @@ class LearnedSimulator(nn.Module):
         ids, n = self._graph_ids(graph)
         return rigid_part(field, graph.pos.to(field.dtype), ids, n, graph.node_type == NodeType.FREE)
 
-    def _parts(self, prediction: Tensor, graph: LevelGraph) -> tuple[Tensor, Tensor]:
-        """rigid_part: the (rigid-motion part, rest) of the normalised ``prediction`` (N, 2 d), in physical units."""
+    def _channels(self, prediction: Tensor) -> tuple[Tensor, Tensor]:
+        """rigid_part: the normalised ``prediction`` (N, 2 d)'s two sets of channels in physical units,
+        before their fits (the rigid part's field, the rest's)."""
         d = self.spec.node_out
-        rigid = self._rigid(self.output_normalizer.inverse(prediction[:, :d]), graph)
-        rest = prediction[:, d:] * self.residual_normalizer.std.to(prediction.dtype)
-        return rigid, rest - self._rigid(rest, graph)
+        return (self.output_normalizer.inverse(prediction[:, :d]),
+                prediction[:, d:] * self.residual_normalizer.std.to(prediction.dtype))
 
     def _rigid_step(self, change: Tensor, graph: LevelGraph) -> Tensor:
         """``change`` with the next velocity's affine part per body a rigid motion (rigid_step)."""
         ids, n = self._graph_ids(graph)
-        free = graph.node_type == NodeType.FREE
-        weight = free.to(torch.float64)
-        counts = weight.new_zeros(n).index_add_(0, ids, weight).clamp(min=1.0)
-        dt = weight.new_zeros(n).index_add_(0, ids, weight * graph.frame_dt.double()) / counts
         velocity = graph.velocity.double()
-        coming = rigid_step(velocity + change.double(), graph.pos.double(), ids, n, free,
-                            torch.where(dt > 0, dt, 1.0))
+        coming = rigid_step(velocity + change.double(), graph.pos.double(), ids, n, graph.node_type == NodeType.FREE,
+                            graph.frame_dt)
         return (coming - velocity).to(change.dtype)
 
     def accumulate_outputs(self, graph: LevelGraph) -> None:
@@ -296,12 +292,13 @@ class LearnedSimulator(nn.Module):
     def prediction_loss(self, prediction: Tensor, graph: LevelGraph, reduction: str = "mean") -> Tensor:
         """The loss of :meth:`loss` of a ``prediction`` (N, node_out) already made of ``graph``
         (multi-step training, :mod:`bsms.training.unroll`, goes on from the prediction it scores)."""
-        if self.rigid_part:  # each part's error in its own normaliser's units
-            rigid, rest = self._parts(prediction, graph)
-            target_rigid = self._rigid(graph.target, graph)
-            error = (((rigid - target_rigid) / self.output_normalizer.std.to(rigid.dtype)).square().sum(-1)
-                     + ((rest - graph.target + target_rigid) / self.residual_normalizer.std.to(rest.dtype))
-                     .square().sum(-1))
+        if self.rigid_part:  # each part's error in its own normaliser's units (the fits are linear)
+            field, rest = self._channels(prediction)
+            rigid_error = self._rigid(field - graph.target, graph)
+            rest_error = rest - graph.target
+            rest_error = rest_error - self._rigid(rest_error, graph)
+            error = ((rigid_error / self.output_normalizer.std.to(field.dtype)).square().sum(-1)
+                     + (rest_error / self.residual_normalizer.std.to(rest.dtype)).square().sum(-1))
         else:
             error = (prediction - self.output_normalizer(graph.target)).square().sum(dim=-1)
         if "loss_weight" in graph:  # train.loss_weight (bsms.data.FrameDataset)
@@ -316,7 +313,8 @@ class LearnedSimulator(nn.Module):
             return self.output_normalizer.inverse(prediction)
         if graph is None:
             raise ValueError("a rigid_part model's answer is fitted per body: give physical() the graph it answers")
-        return sum(self._parts(prediction, graph))
+        field, rest = self._channels(prediction)
+        return self._rigid(field, graph) + rest - self._rigid(rest, graph)
 
     @torch.no_grad()
     def velocity_change(self, graph: LevelGraph, precision: str = "f32") -> Tensor:
